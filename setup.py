@@ -1,0 +1,36 @@
+"""Installs the ``vafn`` distribution: packages ``vafn_gym`` (environments, instructions, queue, media) and ``vafn_sb3``."""
+
+from setuptools import find_packages, setup
+
+EXTRAS = {
+    "dev": ["pytest>=7", "pytest-xdist>=3", "pytest-timeout>=2"],
+    # The speech synthesiser (espeakng-loader, GPL-3) is only used to generate training data; it is never vendored.
+    "media": ["librosa>=0.10", "soundfile>=0.12", "opencv-python-headless>=4.8", "scikit-learn>=1.3", "espeakng-loader>=0.2"],
+    "zoo": ["rl_zoo3>=2.3", "optuna>=3.5", "tensorboard>=2.14", "matplotlib>=3.7", "pandas>=2.0"],
+    "pettingzoo": ["pettingzoo>=1.24"],
+    "bench": ["panda-gym>=3.0.7"],
+}
+EXTRAS["all"] = sorted({req for reqs in EXTRAS.values() for req in reqs})
+
+setup(
+    name="vafn",
+    version="0.1.0",
+    description="VA-FastNavi-MARL: multimedia-driven meta-reinforcement learning for three PyBullet arms",
+    long_description=open("README.md", encoding="utf-8").read(),
+    long_description_content_type="text/markdown",
+    packages=find_packages(include=["vafn_gym", "vafn_gym.*", "vafn_sb3", "vafn_sb3.*"]),
+    package_data={"vafn_gym": ["multimedia/checkpoints/*.pt", "multimedia/checkpoints/*.json"]},
+    python_requires=">=3.10",
+    install_requires=[
+        "gymnasium>=1.0",
+        "numpy>=1.24",
+        "pybullet>=3.2.6",
+        "torch>=2.3",
+        "stable-baselines3>=2.7,<3",
+        "tqdm>=4.60",
+        "rich>=13",
+        "matplotlib>=3.7",
+    ],
+    extras_require=EXTRAS,
+    entry_points={"console_scripts": ["vafn-instruct=vafn_gym.multimedia.cli:main"]},
+)
