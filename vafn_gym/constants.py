@@ -9,6 +9,8 @@ import numpy as np
 
 #: Number of arms sharing the workspace; arms are named 1..NUM_ARMS by users (1-based).
 NUM_ARMS: int = 3
+#: Arm ids as users say them (1-based).
+ARM_IDS: tuple[int, ...] = tuple(range(1, NUM_ARMS + 1))
 #: Longest instruction (number of waypoints) the paper considers.
 MAX_INSTRUCTION_LENGTH: int = 10
 #: Difficulty buckets of the paper, by instruction length (inclusive ranges).

@@ -14,15 +14,14 @@ from typing import Any, Iterable, Iterator, Sequence
 import numpy as np
 
 from vafn_gym.constants import (
+    ARM_IDS,
     DIFFICULTY_LENGTHS,
     MAX_INSTRUCTION_LENGTH,
-    NUM_ARMS,
     WORKSPACE_HIGH,
     WORKSPACE_LOW,
     default_target,
 )
 
-ARM_IDS: tuple[int, ...] = tuple(range(1, NUM_ARMS + 1))
 _SEPARATORS = re.compile(r"[\s,;]+")
 
 
