@@ -1,0 +1,460 @@
+"""The Dynamic Instruction Queue: a bounded, thread-safe FIFO of timestamped instructions, and its arrival processes.
+
+Producers (speech, images, code, other threads) call :meth:`InstructionQueue.enqueue`; the controller calls
+:meth:`InstructionQueue.dequeue` and *holds* while the queue is empty. :class:`ArrivalProcess` subclasses turn a
+simulation step counter into arrivals so that a queue-driven episode is reproducible.
+"""
+
+from __future__ import annotations
+
+import math
+import reprlib
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections import deque
+from dataclasses import dataclass, field
+from numbers import Integral, Real
+from typing import Any, Callable, Iterator, Literal, Mapping, Sequence
+
+import numpy as np
+
+from vafn_gym.instructions import Instruction
+
+__all__ = [
+    "ArrivalProcess",
+    "InstructionQueue",
+    "OVERFLOW_POLICIES",
+    "PoissonArrivals",
+    "QueueFullError",
+    "QueuedInstruction",
+    "ScheduledArrivals",
+]
+
+#: The overflow policies :class:`InstructionQueue` accepts.
+OVERFLOW_POLICIES: tuple[str, ...] = ("raise", "drop_oldest")
+#: How many evicted items :attr:`InstructionQueue.dropped_items` keeps (the most recent ones).
+DROPPED_HISTORY: int = 100
+
+OverflowPolicy = Literal["raise", "drop_oldest"]
+
+
+class QueueFullError(RuntimeError):
+    """Raised by :meth:`InstructionQueue.enqueue` when the queue is full and its overflow policy is ``"raise"``."""
+
+
+def _coerce(value: Any) -> Instruction:
+    """``Instruction.coerce`` that reports every malformed payload as ``ValueError`` (e.g. ``None`` or ``5``)."""
+    try:
+        return Instruction.coerce(value)
+    except TypeError as error:
+        raise ValueError(f"cannot interpret {value!r} as an instruction: {error}") from error
+
+
+@dataclass(frozen=True)
+class QueuedInstruction:
+    """One queue entry: the producer's payload, when it arrived, its global arrival number and where it came from.
+
+    :param payload: what the producer passed (an :class:`Instruction` when enqueued with ``validate=True``).
+    :param arrival_time: the queue clock's reading at enqueue (``time.perf_counter`` by default).
+    :param sequence: the queue's arrival counter; strictly increasing in arrival order, starting at 0.
+    :param source: free-form producer name (``"user"``, ``"speech"``, ``"schedule"``, ...).
+    :param metadata: free-form extras, e.g. latency or confidence from a media stream (a copy of the caller's dict).
+    """
+
+    # payload and metadata may be unhashable (a raw list, a dict); sequence and arrival_time identify an entry.
+    payload: Any = field(hash=False)
+    arrival_time: float
+    sequence: int
+    source: str = "user"
+    metadata: dict = field(default_factory=dict, hash=False)
+
+    @property
+    def instruction(self) -> Instruction:
+        """The payload as an :class:`Instruction`; raises ``ValueError`` for a malformed payload."""
+        return _coerce(self.payload)
+
+
+class InstructionQueue:
+    """Bounded, thread-safe FIFO of :class:`QueuedInstruction`, with an explicit overflow policy and hold state.
+
+    One ``threading.Condition`` guards a ``collections.deque``; timestamps and sequence numbers are taken inside the
+    lock, so arrival order, sequence order and timestamp order agree even with producers on many threads.
+
+    :param capacity: the most instructions the queue holds at once (>= 1).
+    :param overflow: what :meth:`enqueue` does when the queue is full: ``"raise"`` a :class:`QueueFullError` and change
+        nothing, or ``"drop_oldest"``: evict the oldest entry, count it in :attr:`dropped` and keep it in
+        :attr:`dropped_items`.
+    :param clock: zero-argument function giving the arrival timestamp in seconds (monotonic clocks only).
+    """
+
+    def __init__(
+        self,
+        capacity: int = 64,
+        overflow: OverflowPolicy = "raise",
+        clock: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        if isinstance(capacity, bool) or not isinstance(capacity, Integral):
+            raise ValueError(f"capacity must be an integer >= 1, got {capacity!r}")
+        if capacity < 1:
+            raise ValueError(f"capacity must be >= 1, got {capacity}")
+        if overflow not in OVERFLOW_POLICIES:
+            raise ValueError(f"overflow must be one of {list(OVERFLOW_POLICIES)}, got {overflow!r}")
+        if not callable(clock):
+            raise ValueError(f"clock must be callable, got {clock!r}")
+        self._capacity = int(capacity)
+        self._overflow: OverflowPolicy = overflow
+        self._clock = clock
+        self._items: deque[QueuedInstruction] = deque()
+        self._dropped_items: deque[QueuedInstruction] = deque(maxlen=DROPPED_HISTORY)
+        self._cond = threading.Condition(threading.Lock())
+        self._next_sequence = 0
+        self._enqueued = 0
+        self._dequeued = 0
+        self._dropped = 0
+        self._cleared = 0
+
+    # --- configuration ---
+    @property
+    def capacity(self) -> int:
+        """The most instructions the queue holds at once."""
+        return self._capacity
+
+    @property
+    def overflow(self) -> OverflowPolicy:
+        """The overflow policy: ``"raise"`` or ``"drop_oldest"``."""
+        return self._overflow
+
+    # --- counters ---
+    @property
+    def enqueued(self) -> int:
+        """How many entries were accepted by :meth:`enqueue` (rejected ones are not counted)."""
+        return self._enqueued
+
+    @property
+    def dequeued(self) -> int:
+        """How many entries :meth:`dequeue` handed out."""
+        return self._dequeued
+
+    @property
+    def dropped(self) -> int:
+        """How many entries the ``"drop_oldest"`` policy evicted."""
+        return self._dropped
+
+    @property
+    def cleared(self) -> int:
+        """How many entries :meth:`clear` removed; ``enqueued == dequeued + dropped + cleared + len(queue)``."""
+        return self._cleared
+
+    @property
+    def dropped_items(self) -> list[QueuedInstruction]:
+        """The most recently evicted entries (at most ``DROPPED_HISTORY``), oldest first, as a copy."""
+        with self._cond:
+            return list(self._dropped_items)
+
+    # --- producer side ---
+    def enqueue(
+        self,
+        item: Any,
+        source: str = "user",
+        validate: bool = True,
+        metadata: dict | None = None,
+    ) -> QueuedInstruction:
+        """Append an instruction, timestamped and numbered on arrival, and wake a waiting consumer.
+
+        :param item: an :class:`Instruction`, machine code (``"2,3,1"``), a list of arm ids or instruction JSON.
+        :param source: producer name stored on the entry.
+        :param validate: parse ``item`` now, raising ``ValueError`` and enqueueing nothing if it is malformed (the
+            stored payload is then the :class:`Instruction`); with ``False`` the raw ``item`` is stored and the error
+            surfaces on :attr:`QueuedInstruction.instruction`, so a stream can defer parsing to the consumer.
+        :param metadata: free-form extras stored (copied) on the entry.
+        :return: the queued entry.
+        :raises QueueFullError: when the queue is full and the policy is ``"raise"``; the queue is then unchanged.
+        """
+        # Parse outside the lock: it can be slow and never depends on the queue's state.
+        payload = _coerce(item) if validate else item
+        extras = dict(metadata) if metadata is not None else {}
+        with self._cond:
+            if len(self._items) >= self._capacity:
+                if self._overflow == "raise":
+                    raise QueueFullError(
+                        f"instruction queue is full ({self._capacity} entries); "
+                        f"rejected {reprlib.repr(item)} from {source!r}"
+                    )
+                self._dropped_items.append(self._items.popleft())
+                self._dropped += 1
+            entry = QueuedInstruction(
+                payload=payload,
+                arrival_time=float(self._clock()),
+                sequence=self._next_sequence,
+                source=source,
+                metadata=extras,
+            )
+            self._next_sequence += 1
+            self._items.append(entry)
+            self._enqueued += 1
+            self._cond.notify()
+        return entry
+
+    # --- consumer side ---
+    def dequeue(self, timeout: float | None = 0.0) -> QueuedInstruction | None:
+        """Remove and return the oldest entry, waiting up to ``timeout`` seconds for one; ``None`` if still empty.
+
+        :param timeout: ``0`` returns at once, a positive number waits at most that long, ``None`` waits forever.
+        """
+        if timeout is not None and (not isinstance(timeout, Real) or math.isnan(timeout) or timeout < 0):
+            raise ValueError(f"timeout must be None or a number >= 0, got {timeout!r}")
+        with self._cond:
+            if not self._items and timeout != 0:
+                self._cond.wait_for(lambda: bool(self._items), timeout=timeout)
+            if not self._items:
+                return None
+            self._dequeued += 1
+            return self._items.popleft()
+
+    def peek(self) -> QueuedInstruction | None:
+        """The oldest entry without removing it, or ``None`` when the queue is empty."""
+        with self._cond:
+            return self._items[0] if self._items else None
+
+    def snapshot(self) -> list[QueuedInstruction]:
+        """A copy of the current entries, oldest first; later queue changes do not affect it."""
+        with self._cond:
+            return list(self._items)
+
+    def clear(self) -> list[QueuedInstruction]:
+        """Remove every entry and return them, oldest first (counted in :attr:`cleared`, not :attr:`dequeued`)."""
+        with self._cond:
+            items = list(self._items)
+            self._items.clear()
+            self._cleared += len(items)
+            return items
+
+    @property
+    def holding(self) -> bool:
+        """Whether the controller must hold: ``True`` exactly when the queue is empty."""
+        with self._cond:
+            return not self._items
+
+    def __len__(self) -> int:
+        """The number of queued entries (so an empty queue is falsy: test ``is None``, not truthiness)."""
+        with self._cond:
+            return len(self._items)
+
+    def __iter__(self) -> Iterator[QueuedInstruction]:
+        """Iterate over a snapshot taken under the lock, oldest first."""
+        return iter(self.snapshot())
+
+    def __repr__(self) -> str:
+        return (
+            f"InstructionQueue(len={len(self)}, capacity={self._capacity}, overflow={self._overflow!r}, "
+            f"enqueued={self._enqueued}, dequeued={self._dequeued}, dropped={self._dropped})"
+        )
+
+
+# --- arrival processes ---
+def _check_step(step: Any) -> int:
+    if isinstance(step, bool) or not isinstance(step, Integral) or step < 0:
+        raise ValueError(f"step must be an integer >= 0, got {step!r}")
+    return int(step)
+
+
+class ArrivalProcess(ABC):
+    """Turns a simulation step counter into instruction arrivals, so a queue-driven episode is reproducible."""
+
+    #: Source name used by :meth:`feed` when none is given.
+    default_source: str = "arrival"
+
+    def reset(self, seed: int | None = None) -> None:
+        """Start a new episode; seeded processes reseed (``None`` keeps a deterministic process as it is).
+
+        :param seed: the new seed, or ``None``.
+        """
+
+    @abstractmethod
+    def arrivals(self, step: int) -> list[Instruction]:
+        """The instructions that arrive at env step ``step``, in arrival order (a new list).
+
+        :param step: the env step counter (>= 0).
+        """
+
+    def feed(self, queue: InstructionQueue, step: int, source: str | None = None) -> list[QueuedInstruction]:
+        """Enqueue this step's arrivals into ``queue`` (metadata ``{"step": step}``) and return the new entries.
+
+        With an ``overflow="raise"`` queue a :class:`QueueFullError` propagates; earlier arrivals stay queued.
+
+        :param queue: the queue to feed.
+        :param step: the env step counter (>= 0).
+        :param source: source name for the entries (default: the process's ``default_source``).
+        """
+        name = self.default_source if source is None else source
+        return [queue.enqueue(item, source=name, metadata={"step": step}) for item in self.arrivals(step)]
+
+
+def _is_single_instruction(value: Any) -> bool:
+    """Whether a schedule value is one instruction rather than a list of them (a list of numbers is arm ids)."""
+    if isinstance(value, (Instruction, str, bytes, dict)):
+        return True
+    if isinstance(value, (list, tuple)):
+        return all(isinstance(element, (Real, np.number)) for element in value)
+    return True
+
+
+class ScheduledArrivals(ArrivalProcess):
+    """A scripted schedule: at step ``k`` the instruction(s) ``schedule[k]`` arrive.
+
+    A value is one instruction in any form :meth:`Instruction.coerce` accepts, or a list of them. A list of numbers
+    (``[2, 3, 1]``, and also ``[]``) is read as one instruction's arm ids; write ``[[2, 3], [1]]`` or
+    ``["2,3", "1"]`` for several. Everything is validated here: ``ValueError`` names the offending step.
+
+    :param schedule: mapping from env step (>= 0) to instruction(s).
+    """
+
+    default_source = "schedule"
+
+    def __init__(self, schedule: Mapping[int, Any]) -> None:
+        if not isinstance(schedule, Mapping):
+            raise ValueError(f"schedule must be a mapping step -> instruction(s), got {type(schedule).__name__}")
+        parsed: dict[int, tuple[Instruction, ...]] = {}
+        for key, value in schedule.items():
+            try:
+                step = _check_step(key)
+            except ValueError as error:
+                raise ValueError(f"schedule step {key!r}: {error}") from None
+            values = [value] if _is_single_instruction(value) else list(value)
+            items = []
+            for index, element in enumerate(values):
+                try:
+                    items.append(_coerce(element))
+                except ValueError as error:
+                    where = f"schedule step {step}" + ("" if len(values) == 1 else f", instruction {index}")
+                    raise ValueError(f"{where}: {error}") from error
+            parsed[step] = tuple(items)
+        self._schedule = dict(sorted(parsed.items()))
+
+    @property
+    def steps(self) -> tuple[int, ...]:
+        """The scheduled steps, ascending."""
+        return tuple(self._schedule)
+
+    @property
+    def last_step(self) -> int:
+        """The last scheduled step, or -1 for an empty schedule (nothing arrives after it)."""
+        return max(self._schedule, default=-1)
+
+    def arrivals(self, step: int) -> list[Instruction]:
+        """The instructions scheduled at ``step`` (empty for an unscheduled step).
+
+        :param step: the env step counter (>= 0).
+        """
+        return list(self._schedule.get(_check_step(step), ()))
+
+    @property
+    def num_instructions(self) -> int:
+        """How many instructions the whole schedule delivers."""
+        return sum(len(items) for items in self._schedule.values())
+
+
+class PoissonArrivals(ArrivalProcess):
+    """Seeded Poisson arrivals with optional bursts; same seed, same arrivals.
+
+    At each step ``Poisson(rate)`` instructions arrive, plus, with probability ``burst_probability``, a burst of
+    ``burst_size`` (an integer drawn uniformly from the inclusive range) more. Each step draws from its own
+    ``np.random.Generator`` derived from ``(seed, step)``, so :meth:`arrivals` is a pure function of the step: calling
+    it out of order, skipping steps or replaying a step gives the same answer.
+
+    :param rate: mean number of (non-burst) arrivals per step (>= 0).
+    :param sampler: ``sampler(rng) -> instruction``, drawing from the step's generator; give this or ``instructions``.
+    :param instructions: a fixed list of instructions to draw from uniformly; give this or ``sampler``.
+    :param burst_probability: per-step probability of a burst, in [0, 1].
+    :param burst_size: inclusive ``(low, high)`` range of a burst's size, 1 <= low <= high.
+    :param seed: the seed; ``None`` draws fresh entropy (still fixed until the next :meth:`reset`).
+    """
+
+    default_source = "poisson"
+
+    def __init__(
+        self,
+        rate: float,
+        sampler: Callable[[np.random.Generator], Any] | None = None,
+        instructions: Sequence[Any] | None = None,
+        burst_probability: float = 0.0,
+        burst_size: tuple[int, int] = (2, 5),
+        seed: int | None = None,
+    ) -> None:
+        if isinstance(rate, bool) or not isinstance(rate, Real) or not math.isfinite(rate) or rate < 0:
+            raise ValueError(f"rate must be a finite number >= 0, got {rate!r}")
+        if (
+            isinstance(burst_probability, bool)
+            or not isinstance(burst_probability, Real)
+            or not 0.0 <= burst_probability <= 1.0
+        ):
+            raise ValueError(f"burst_probability must be in [0, 1], got {burst_probability!r}")
+        try:
+            low, high = burst_size
+        except (TypeError, ValueError):
+            raise ValueError(f"burst_size must be a (low, high) pair, got {burst_size!r}") from None
+        if any(isinstance(v, bool) or not isinstance(v, Integral) for v in (low, high)) or not 1 <= low <= high:
+            raise ValueError(f"burst_size must be integers with 1 <= low <= high, got {burst_size!r}")
+        if (sampler is None) == (instructions is None):
+            raise ValueError("give exactly one of sampler (a callable) or instructions (a non-empty list)")
+        if sampler is not None and not callable(sampler):
+            raise ValueError(f"sampler must be callable, got {sampler!r}")
+        pool: tuple[Instruction, ...] = ()
+        if instructions is not None:
+            if isinstance(instructions, (str, bytes, Instruction)):
+                raise ValueError("instructions must be a list of instructions, not a single one")
+            pool_list = []
+            for index, element in enumerate(instructions):
+                try:
+                    pool_list.append(_coerce(element))
+                except ValueError as error:
+                    raise ValueError(f"instructions[{index}]: {error}") from error
+            if not pool_list:
+                raise ValueError("instructions must not be empty")
+            pool = tuple(pool_list)
+        self.rate = float(rate)
+        self.burst_probability = float(burst_probability)
+        self.burst_size = (int(low), int(high))
+        self._sampler = sampler
+        self._pool = pool
+        self._entropy = 0
+        self.reset(seed)
+
+    @property
+    def seed(self) -> int:
+        """The entropy every step's generator is derived from (the seed, or the drawn entropy for ``seed=None``)."""
+        return self._entropy
+
+    def reset(self, seed: int | None = None) -> None:
+        """Reseed; ``None`` draws fresh entropy.
+
+        :param seed: the new seed (an integer >= 0) or ``None``.
+        """
+        if seed is None:
+            self._entropy = int(np.random.SeedSequence().entropy)
+        elif isinstance(seed, bool) or not isinstance(seed, Integral) or seed < 0:
+            raise ValueError(f"seed must be None or an integer >= 0, got {seed!r}")
+        else:
+            self._entropy = int(seed)
+
+    def arrivals(self, step: int) -> list[Instruction]:
+        """The instructions that arrive at ``step``, drawn from a generator seeded by ``(seed, step)``.
+
+        :param step: the env step counter (>= 0).
+        """
+        rng = np.random.default_rng(np.random.SeedSequence([self._entropy, _check_step(step)]))
+        count = int(rng.poisson(self.rate))
+        if self.burst_probability > 0.0 and rng.random() < self.burst_probability:
+            count += int(rng.integers(self.burst_size[0], self.burst_size[1], endpoint=True))
+        result = []
+        for _ in range(count):
+            if self._sampler is not None:
+                drawn = self._sampler(rng)
+                try:
+                    result.append(_coerce(drawn))
+                except ValueError as error:
+                    raise ValueError(f"step {step}: the sampler returned a malformed instruction: {error}") from error
+            else:
+                result.append(self._pool[int(rng.integers(len(self._pool)))])
+        return result
