@@ -108,16 +108,20 @@ class TaskSampler:
         """Every arm order in this sampler's split and length range."""
         return list(self._orders)
 
-    def sample(self) -> Instruction:
-        """One instruction: a uniform length, then a uniform order of that length from this split, then targets."""
+    def sample(self, rng: np.random.Generator | None = None) -> Instruction:
+        """One instruction: a uniform length, then a uniform order of that length from this split, then targets.
+
+        :param rng: draw from this generator instead of the sampler's own stream.
+        """
+        rng = self.rng if rng is None else rng
         lengths = sorted({len(o) for o in self._orders})
-        length = lengths[self.rng.integers(len(lengths))]
+        length = lengths[rng.integers(len(lengths))]
         candidates = [o for o in self._orders if len(o) == length]
-        order = candidates[self.rng.integers(len(candidates))]
+        order = candidates[rng.integers(len(candidates))]
         if self.family == "order":
             targets = [default_target(arm) for arm in order]
         else:
-            targets = [sample_shared_target(self.rng) for _ in order]
+            targets = [sample_shared_target(rng) for _ in order]
         instruction = Instruction.from_arms(order, targets)
         assert self.split_of(instruction) == self.split, "sampler produced an order outside its split"
         return instruction

@@ -239,10 +239,19 @@ class ThreeArmEnv(gym.Env):
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Apply a 9-D end-effector velocity command (3 per arm, in [-1, 1] × ``V_MAX``) for one control step."""
+        positions, reward, collision = self._advance(action)
+        terminated = self.active_arm is None or (collision and self.terminate_on_collision)
+        truncated = not terminated and self.steps >= self.max_episode_steps()
+        return self._observation(positions), reward, terminated, truncated, self._info(positions, collision)
+
+    def _advance(self, action: Any) -> tuple[dict[int, np.ndarray], float, bool]:
+        """Validate and apply an action, then advance the waypoint; returns (positions, reward, collision)."""
         action = self._validate_action(action)
         active = self.active_arm
         target = self.current_target(active) if active is not None else None
-        distance_before = np.linalg.norm(self.arms[active].ee_position - target) if active is not None else 0.0
+        distance_before = distance_after = 0.0
+        if active is not None:
+            distance_before = float(np.linalg.norm(self.arms[active].ee_position - target))
 
         self._apply_action(action)
         self.steps += 1
@@ -252,16 +261,12 @@ class ThreeArmEnv(gym.Env):
 
         reached = 0
         if active is not None:
-            distance_after = np.linalg.norm(positions[active] - target)
+            distance_after = float(np.linalg.norm(positions[active] - target))
             if distance_after < SUCCESS_TOLERANCE:
                 reached = 1
                 self.waypoint_index += 1
                 self._update_markers()
-        reward = self._reward(positions, active, distance_before, distance_after if active else 0.0, reached, collision)
-        complete = self.active_arm is None
-        terminated = complete or (collision and self.terminate_on_collision)
-        truncated = not terminated and self.steps >= self.max_episode_steps()
-        return self._observation(positions), reward, terminated, truncated, self._info(positions, collision)
+        return positions, self._reward(positions, active, distance_before, distance_after, reached, collision), collision
 
     def _reward(
         self, positions: dict[int, np.ndarray], active: int | None, before: float, after: float, reached: int,

@@ -1,0 +1,173 @@
+"""ThreeArmStreamEnv: the long-horizon, queue-driven variant; instructions arrive through the Dynamic Instruction Queue."""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+
+from vafn_gym.envs.three_arm import BASE_EPISODE_STEPS, STEPS_PER_WAYPOINT, ThreeArmEnv
+from vafn_gym.instructions import Instruction
+from vafn_gym.queue import ArrivalProcess, InstructionQueue, PoissonArrivals, QueuedInstruction, ScheduledArrivals
+
+#: Source name of the items the env's own arrival process enqueues (dropped on reset; user items are kept).
+ARRIVAL_SOURCE = "arrival-process"
+DEFAULT_HORIZON = 2000
+
+
+class ThreeArmStreamEnv(ThreeArmEnv):
+    """Instructions arrive asynchronously; the arms hold when the queue is empty, and finishing one starts the next.
+
+    Episodes never terminate on success: they are truncated at ``horizon`` steps (2,000, the paper's long-horizon test).
+    Per-instruction outcomes are appended to :attr:`records`.
+
+    :param arrivals: ``"poisson"`` (seeded, instructions from the task sampler), ``None`` (only user code enqueues,
+        e.g. ``env.unwrapped.queue.enqueue("2,3,1")`` from another thread), a schedule ``{step: instruction(s)}`` or
+        any :class:`ArrivalProcess`.
+    :param arrival_rate: mean arrivals per step of the Poisson process.
+    :param horizon: steps per episode.
+    :param queue_capacity: bound of the queue.
+    :param overflow: the queue's overflow policy, "raise" or "drop_oldest".
+    :param auto_dequeue: start the next queued instruction automatically; set False when a controller (e.g.
+        :class:`vafn_sb3.OnlineController`) dequeues itself through :meth:`start_next`.
+    :param instruction_timeout: steps allowed per instruction (default ``50 + 80 * len``); a timed-out one is recorded
+        and skipped.
+    :param kwargs: everything :class:`ThreeArmEnv` accepts (task family, split, reward type, rendering, ...).
+    """
+
+    def __init__(
+        self,
+        arrivals: str | Mapping[int, Any] | ArrivalProcess | None = "poisson",
+        arrival_rate: float = 0.005,
+        horizon: int = DEFAULT_HORIZON,
+        queue_capacity: int = 64,
+        overflow: str = "drop_oldest",
+        auto_dequeue: bool = True,
+        instruction_timeout: int | None = None,
+        **kwargs: Any,
+    ) -> None:
+        if "instruction" in kwargs or "max_episode_steps" in kwargs:
+            raise ValueError("ThreeArmStreamEnv takes instructions from its queue; use arrivals= and horizon=")
+        if horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        super().__init__(max_episode_steps=horizon, **kwargs)
+        self.queue = InstructionQueue(capacity=queue_capacity, overflow=overflow)
+        self.arrival_process = self._make_arrivals(arrivals, arrival_rate)
+        self.horizon = horizon
+        self.auto_dequeue = auto_dequeue
+        self.instruction_timeout = instruction_timeout
+        self.total_steps = 0
+        self.current: QueuedInstruction | None = None
+        self.records: list[dict[str, Any]] = []
+        self.errors: list[str] = []
+
+    def _make_arrivals(self, arrivals: Any, rate: float) -> ArrivalProcess | None:
+        if arrivals is None or isinstance(arrivals, ArrivalProcess):
+            return arrivals
+        if isinstance(arrivals, str):
+            if arrivals != "poisson":
+                raise ValueError(f"arrivals must be 'poisson', None, a schedule or an ArrivalProcess, got {arrivals!r}")
+            return PoissonArrivals(rate, sampler=self.sampler.sample, seed=0)
+        if isinstance(arrivals, Mapping):
+            return ScheduledArrivals(arrivals)
+        raise ValueError(f"arrivals must be 'poisson', None, a schedule or an ArrivalProcess, got {type(arrivals).__name__}")
+
+    @property
+    def holding(self) -> bool:
+        """True while no instruction is being executed (the queue was empty)."""
+        return self.current is None
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        """Home the arms, drop the previous episode's own arrivals (user-enqueued items are kept) and start holding."""
+        super(ThreeArmEnv, self).reset(seed=seed)
+        if self.arrival_process is not None:
+            self.arrival_process.reset(None if seed is None else int(self.np_random.integers(2**63)))
+        for item in self.queue.clear():
+            if item.source != ARRIVAL_SOURCE:
+                self.queue.enqueue(item.payload, source=item.source, validate=False, metadata=item.metadata)
+        for arm in self.arms.values():
+            arm.reset()
+        self.total_steps = 0
+        self.records, self.errors = [], []
+        self._hold()
+        self._pump()
+        positions = self._positions()
+        return self._observation(positions), self._stream_info(positions, False, [])
+
+    def _hold(self) -> None:
+        self.current = None
+        self._start_instruction(Instruction())
+
+    def start_next(self) -> QueuedInstruction | None:
+        """Dequeue and start the next valid instruction (malformed ones are recorded in :attr:`errors` and skipped)."""
+        while True:
+            item = self.queue.dequeue()
+            if item is None:
+                self._hold()
+                return None
+            try:
+                instruction = item.instruction
+            except ValueError as error:
+                self.errors.append(f"instruction #{item.sequence} from {item.source!r} rejected: {error}")
+                continue
+            self.current = item
+            self._start_instruction(instruction)
+            self._started_at = self.total_steps
+            return item
+
+    def _pump(self) -> None:
+        """Feed this step's arrivals and, when idle and auto_dequeue is on, start the next instruction."""
+        if self.arrival_process is not None:
+            self.arrival_process.feed(self.queue, self.total_steps, source=ARRIVAL_SOURCE)
+        if self.current is None and self.auto_dequeue:
+            self.start_next()
+
+    def _finish(self, outcome: str) -> dict[str, Any]:
+        assert self.current is not None
+        record = {
+            "sequence": self.current.sequence,
+            "source": self.current.source,
+            "instruction": self.instruction.to_code(),
+            "arrival_time": self.current.arrival_time,
+            "start_step": self._started_at,
+            "end_step": self.total_steps,
+            "waypoints_reached": self.waypoint_index,
+            "collided": self.collided,
+            "outcome": outcome,
+            "success": outcome == "completed" and not self.collided,
+        }
+        self.records.append(record)
+        self._hold()
+        return record
+
+    def instruction_budget(self) -> int:
+        """Steps allowed for the current instruction."""
+        if self.instruction_timeout is not None:
+            return self.instruction_timeout
+        return BASE_EPISODE_STEPS + STEPS_PER_WAYPOINT * len(self.instruction)
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """One control step; finished or timed-out instructions are recorded and the next one starts."""
+        positions, reward, collision = self._advance(action)
+        self.total_steps += 1
+        events = []
+        if self.current is not None and self.active_arm is None:
+            events.append(self._finish("completed"))
+        elif self.current is not None and self.steps >= self.instruction_budget():
+            events.append(self._finish("timeout"))
+        self._pump()
+        terminated = bool(collision and self.terminate_on_collision)
+        truncated = not terminated and self.total_steps >= self.horizon
+        return self._observation(positions), reward, terminated, truncated, self._stream_info(positions, collision, events)
+
+    def _stream_info(self, positions: dict[int, np.ndarray], collision: bool, events: list[dict]) -> dict[str, Any]:
+        info = self._info(positions, collision)
+        info.update(
+            is_success=all(r["success"] for r in self.records),
+            holding=self.holding,
+            queue_length=len(self.queue),
+            instruction_sequence=None if self.current is None else self.current.sequence,
+            finished=events,
+            total_steps=self.total_steps,
+        )
+        return info
