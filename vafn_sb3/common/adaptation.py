@@ -1,0 +1,256 @@
+"""The fast-adaptation protocol every vafn algorithm implements, and one evaluation routine for all of them.
+
+A model is :class:`Adaptable` when ``model.adapt(env, task, n_support, k, seed)`` collects ``n_support`` transitions
+with its stochastic policy on ``env`` (after ``env.unwrapped.set_task(task)``), runs ``k`` gradient steps of its own
+adaptation rule and returns an :class:`AdaptedPolicy`, without changing the model itself (parameters, optimisers,
+replay buffers, target networks are restored in a ``finally`` block even when adaptation raises).
+
+:func:`evaluate_adaptation` measures any such model on the same held-out tasks with the same support budget and the
+same ``k``, so MAML-SAC and the baselines are compared like for like.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, Protocol, Sequence, runtime_checkable
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from vafn_gym.instructions import Instruction
+
+__all__ = [
+    "Adaptable",
+    "AdaptedPolicy",
+    "SupportSet",
+    "collect_support",
+    "evaluate_adaptation",
+    "run_episode",
+]
+
+#: Offset between the seed of the support rollouts and the seeds of the evaluation episodes of the same task.
+EVAL_SEED_OFFSET = 10_000
+
+
+@runtime_checkable
+class AdaptedPolicy(Protocol):
+    """What :meth:`Adaptable.adapt` returns: anything with SB3's ``predict`` signature."""
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, Any]:
+        """Action(s) for ``observation`` (a single observation or a batch), and the recurrent state (``None``)."""
+        ...
+
+
+@runtime_checkable
+class Adaptable(Protocol):
+    """A model that can adapt to one task from a small support set without changing itself."""
+
+    def adapt(
+        self,
+        env: gym.Env,
+        task: Instruction | None = None,
+        n_support: int = ...,
+        k: int = ...,
+        seed: int | None = None,
+    ) -> AdaptedPolicy:
+        """Collect ``n_support`` stochastic transitions on ``env`` (task ``task``; ``None`` keeps the env's), take ``k``
+        adaptation steps and return the adapted policy; the model's own state is left bit-identical."""
+        ...
+
+
+@dataclass(frozen=True)
+class SupportSet:
+    """Transitions collected by a stochastic policy on one task (arrays with a leading time axis of length ``n``).
+
+    :param observations: ``(n, obs_dim)`` observations.
+    :param actions: ``(n, act_dim)`` actions actually sent to the env (in the action space's bounds).
+    :param rewards: ``(n,)`` rewards.
+    :param next_observations: ``(n, obs_dim)`` observations after each step (the true final one at episode ends).
+    :param terminated: ``(n,)`` 1.0 where the episode terminated (no bootstrap), else 0.0.
+    :param episode_ends: ``(n,)`` 1.0 where an episode ended (terminated, truncated, or cut by the support budget).
+    :param successes: ``(n,)`` the env's ``info["is_success"]`` after each step.
+    :param collisions: ``(n,)`` the env's ``info["collision"]`` after each step.
+    """
+
+    observations: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    next_observations: np.ndarray
+    terminated: np.ndarray
+    episode_ends: np.ndarray
+    successes: np.ndarray
+    collisions: np.ndarray
+
+    def __len__(self) -> int:
+        """Number of transitions."""
+        return len(self.rewards)
+
+    def discounted_returns(self, gamma: float, n_step: int | None = None, bootstrap: np.ndarray | None = None) -> np.ndarray:
+        """Per-step targets ``sum_j gamma^j r_{t+j}`` within each episode, truncated after ``n_step`` terms.
+
+        :param gamma: discount factor.
+        :param n_step: number of reward terms; ``None`` sums to the episode end (Monte Carlo).
+        :param bootstrap: optional ``(n,)`` value estimates ``V(s'_t)``; where a sum stops before a termination
+            (after ``n_step`` terms, or at a truncation or the end of the support), ``gamma^m * bootstrap`` of the last
+            summed transition is added.
+        :return: ``(n,)`` float32 targets.
+        """
+        if not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"gamma must be in [0, 1], got {gamma}")
+        if n_step is not None and n_step < 1:
+            raise ValueError(f"n_step must be >= 1 or None, got {n_step}")
+        n = len(self)
+        horizon = n if n_step is None else n_step
+        targets = np.zeros(n, dtype=np.float64)
+        for t in range(n):
+            total, discount, j = 0.0, 1.0, t
+            while True:
+                total += discount * float(self.rewards[j])
+                discount *= gamma
+                stop_episode = bool(self.episode_ends[j])
+                if stop_episode or j - t + 1 >= horizon or j + 1 >= n:
+                    if bootstrap is not None and not bool(self.terminated[j]):
+                        total += discount * float(bootstrap[j])
+                    break
+                j += 1
+            targets[t] = total
+        return targets.astype(np.float32)
+
+
+def collect_support(model: Any, env: gym.Env, task: Instruction | None, n_support: int, seed: int | None) -> SupportSet:
+    """Roll out ``model``'s stochastic policy (``predict(obs, deterministic=False)``) for ``n_support`` steps on one task.
+
+    The env is reset (with ``seed``) after ``env.unwrapped.set_task(task)``, and again after every episode end. Torch's
+    global random stream is forked, so the policy noise is reproducible from ``seed`` and the caller's stream is left
+    untouched.
+
+    :param model: anything with SB3's ``predict``.
+    :param env: a single (non-vectorised) Gymnasium env exposing ``unwrapped.set_task``.
+    :param task: the instruction to adapt to; ``None`` keeps the env's current task.
+    :param n_support: number of transitions to collect (>= 1).
+    :param seed: seed of the env resets and the policy noise (``None``: unseeded).
+    :return: the collected transitions.
+    """
+    if n_support < 1:
+        raise ValueError(f"n_support must be >= 1, got {n_support}")
+    if task is not None:
+        env.unwrapped.set_task(task)
+    columns: dict[str, list] = {name: [] for name in SupportSet.__dataclass_fields__}
+    with torch.random.fork_rng(devices=[]):
+        if seed is not None:
+            torch.manual_seed(seed)
+        obs, _ = env.reset(seed=seed)
+        for _ in range(n_support):
+            action, _ = model.predict(obs, deterministic=False)
+            next_obs, reward, terminated, truncated, info = env.step(action)
+            columns["observations"].append(obs)
+            columns["actions"].append(action)
+            columns["rewards"].append(reward)
+            columns["next_observations"].append(next_obs)
+            columns["terminated"].append(float(terminated))
+            columns["episode_ends"].append(float(terminated or truncated))
+            columns["successes"].append(float(info.get("is_success", False)))
+            columns["collisions"].append(float(info.get("collision", False)))
+            obs = env.reset()[0] if terminated or truncated else next_obs
+    columns["episode_ends"][-1] = 1.0  # the support budget cuts the last episode
+    return SupportSet(**{name: np.asarray(values, dtype=np.float32) for name, values in columns.items()})
+
+
+def run_episode(policy: Any, env: gym.Env, seed: int | None, deterministic: bool = True) -> dict[str, float]:
+    """One episode of ``policy`` on ``env``'s current task.
+
+    :param policy: anything with SB3's ``predict``.
+    :param env: a single Gymnasium env.
+    :param seed: reset seed.
+    :param deterministic: use the policy's deterministic action.
+    :return: ``{"return", "success", "collision", "length"}`` (collision: any arm-arm contact in the episode).
+    """
+    obs, _ = env.reset(seed=seed)
+    total, length, collided, success = 0.0, 0, False, False
+    while True:
+        action, _ = policy.predict(obs, deterministic=deterministic)
+        obs, reward, terminated, truncated, info = env.step(action)
+        total += float(reward)
+        length += 1
+        collided |= bool(info.get("collision", False))
+        success = bool(info.get("is_success", False))
+        if terminated or truncated:
+            return {"return": total, "success": float(success), "collision": float(collided), "length": float(length)}
+
+
+def evaluate_adaptation(
+    model: Any,
+    env_id: str,
+    tasks: list[Instruction],
+    n_support: int,
+    k_values: Sequence[int],
+    n_eval_episodes: int = 3,
+    seed: int = 0,
+    env_kwargs: dict | None = None,
+) -> list[dict]:
+    """Adaptation curve of ``model``: deterministic evaluation after ``k`` adaptation steps, per task and ``k``.
+
+    For each task and each ``k`` the model adapts from a support set of ``n_support`` transitions collected with the
+    same seed (so every ``k`` of a task sees the same support data), then runs ``n_eval_episodes`` deterministic
+    episodes. ``k = 0`` evaluates the unadapted model itself (no support is collected). The same protocol applies to
+    every :class:`Adaptable`, so curves of different algorithms are comparable.
+
+    :param model: an :class:`Adaptable` (also needs ``predict``).
+    :param env_id: registered env ID (e.g. ``"VAFN/ThreeArmReachHidden-v0"``); one env is made and reused.
+    :param tasks: held-out instructions (e.g. ``TaskSampler("test", ...).fixed_set(n)``).
+    :param n_support: support transitions per adaptation.
+    :param k_values: numbers of adaptation steps to evaluate (each >= 0).
+    :param n_eval_episodes: deterministic evaluation episodes per (task, k).
+    :param seed: base seed; task ``i`` uses support seed ``seed + i`` and evaluation seeds after ``EVAL_SEED_OFFSET``.
+    :param env_kwargs: extra keyword arguments of ``gym.make``.
+    :return: one row per (task, k): ``task_index``, ``task`` (code), ``k``, ``n_support``, ``return_mean``,
+        ``success_rate``, ``collision_rate``, ``adapt_time_s`` (wall time of ``adapt``, support collection included).
+    """
+    if not tasks:
+        raise ValueError("tasks is empty")
+    if n_eval_episodes < 1:
+        raise ValueError(f"n_eval_episodes must be >= 1, got {n_eval_episodes}")
+    if any(int(k) < 0 for k in k_values):
+        raise ValueError(f"k_values must be >= 0, got {list(k_values)}")
+    if any(int(k) > 0 for k in k_values) and not isinstance(model, Adaptable):
+        raise TypeError(f"{type(model).__name__} has no adapt(); only k = 0 can be evaluated")
+    env = gym.make(env_id, **(env_kwargs or {}))
+    rows = []
+    try:
+        for task_index, task in enumerate(tasks):
+            task = Instruction.coerce(task)
+            for k in k_values:
+                start = time.perf_counter()
+                if int(k) == 0:
+                    policy = model
+                else:
+                    policy = model.adapt(env, task=task, n_support=n_support, k=int(k), seed=seed + task_index)
+                adapt_time = time.perf_counter() - start
+                env.unwrapped.set_task(task)
+                episodes = [
+                    run_episode(policy, env, seed=seed + EVAL_SEED_OFFSET + task_index * n_eval_episodes + episode)
+                    for episode in range(n_eval_episodes)
+                ]
+                rows.append(
+                    {
+                        "task_index": task_index,
+                        "task": task.to_code(),
+                        "k": int(k),
+                        "n_support": n_support,
+                        "return_mean": float(np.mean([e["return"] for e in episodes])),
+                        "success_rate": float(np.mean([e["success"] for e in episodes])),
+                        "collision_rate": float(np.mean([e["collision"] for e in episodes])),
+                        "adapt_time_s": adapt_time,
+                    }
+                )
+    finally:
+        env.close()
+    return rows
