@@ -1,0 +1,152 @@
+"""``VAFNExperimentManager``: rl_zoo3's ExperimentManager with the few vafn-specific behaviours the zoo lacks.
+
+* evaluation reports success *and* collision rates (``eval/collision_rate``, ``rollout/collision_rate``, Monitor columns);
+* a sampled ``policy_kwargs`` is merged into the YAML's instead of replacing it (during ``-optimize`` and ``--trial-id``);
+* tuning defaults to a local journal file, tags each trial with its worker, and on restart marks trials left RUNNING by
+  a dead local worker as FAIL and re-queues their parameters, so a killed worker's study resumes cleanly.
+"""
+
+from __future__ import annotations
+
+import contextvars
+import os
+import socket
+from typing import Any
+
+import optuna
+from optuna.trial import TrialState
+from rl_zoo3.exp_manager import ExperimentManager
+from rl_zoo3.hyperparams_opt import HYPERPARAMS_SAMPLER
+from stable_baselines3.common.callbacks import EvalCallback
+
+from vafn_sb3.callbacks import RolloutCollisionCallback, SuccessCollisionEvalCallback
+
+#: Monitor columns written for VAFN envs (success and "any collision this episode").
+VAFN_INFO_KEYWORDS = ("is_success", "collided")
+#: Trial user attribute naming the worker process that runs it.
+WORKER_ATTR = "worker"
+#: Hyperparameter key carrying a stored trial's policy_kwargs until they are merged with the YAML's.
+TUNED_POLICY_KWARGS = "tuned_policy_kwargs"
+
+_yaml_policy_kwargs: contextvars.ContextVar[dict[str, Any]] = contextvars.ContextVar("yaml_policy_kwargs", default={})
+
+
+def worker_id() -> str:
+    """``host:pid`` of this process."""
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def open_storage(storage: str) -> optuna.storages.BaseStorage:
+    """A ``*.log`` path as a journal-file storage, anything else as an RDB URL (sqlite/postgresql/mysql)."""
+    if storage.endswith(".log"):
+        return optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(storage))
+    return optuna.storages.RDBStorage(storage)
+
+
+def recover_stale_trials(storage: str, study_name: str) -> list[int]:
+    """Mark RUNNING trials of dead workers on this host as FAIL and re-queue their parameters; returns their numbers.
+
+    Trials of other hosts are left alone (their liveness cannot be checked from here; use an RDB storage with
+    Optuna heartbeats for multi-machine studies).
+    """
+    try:
+        study = optuna.load_study(study_name=study_name, storage=open_storage(storage))
+    except KeyError:  # the study does not exist yet
+        return []
+    host = socket.gethostname()
+    recovered = []
+    for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
+        owner = str(trial.user_attrs.get(WORKER_ATTR, ""))
+        owner_host, _, pid = owner.rpartition(":")
+        if owner_host != host or not pid.isdigit() or _pid_alive(int(pid)):
+            continue
+        study._storage.set_trial_state_values(trial._trial_id, TrialState.FAIL)
+        study.enqueue_trial(trial.params, user_attrs={"retry_of": trial.number}, skip_if_exists=True)
+        recovered.append(trial.number)
+    return recovered
+
+
+def _merge_policy_kwargs(sampler: Any) -> Any:
+    """Wrap a sampler so that its ``policy_kwargs`` extend the YAML's (set per trial through a context variable)."""
+
+    def sample(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
+        params = sampler(trial, n_actions, n_envs, additional_args)
+        if "policy_kwargs" in params:
+            params["policy_kwargs"] = {**_yaml_policy_kwargs.get(), **params["policy_kwargs"]}
+        return params
+
+    sample.merges_policy_kwargs = True  # type: ignore[attr-defined]
+    return sample
+
+
+class VAFNExperimentManager(ExperimentManager):
+    """ExperimentManager with success/collision evaluation, policy_kwargs merging and resumable local tuning."""
+
+    def _is_vafn_env(self) -> bool:
+        return self.env_name.gym_id.startswith("VAFN/")
+
+    # --- hyperparameters ---
+    def load_trial(self, storage: str, study_name: str, trial_id: int | None = None, convert: bool = True) -> dict:
+        """A stored trial's hyperparams, its policy_kwargs set aside to be merged with the YAML's later."""
+        params = super().load_trial(storage, study_name, trial_id, convert)
+        if convert and "policy_kwargs" in params:
+            params[TUNED_POLICY_KWARGS] = params.pop("policy_kwargs")
+        return params
+
+    def _preprocess_hyperparams(self, hyperparams: dict[str, Any]) -> tuple:
+        """The zoo's preprocessing, then merge tuned policy_kwargs into the YAML/CLI ones (CLI keys win)."""
+        tuned = hyperparams.pop(TUNED_POLICY_KWARGS, None)
+        hyperparams, env_wrapper, callbacks, vec_env_wrapper = super()._preprocess_hyperparams(hyperparams)
+        if tuned:
+            cli = (self.custom_hyperparams or {}).get("policy_kwargs") or {}
+            cli = eval(cli) if isinstance(cli, str) else cli  # same eval as the zoo's policy_kwargs strings
+            hyperparams["policy_kwargs"] = {**hyperparams.get("policy_kwargs", {}), **tuned, **cli}
+        if self._is_vafn_env() and not self.monitor_kwargs:
+            self.monitor_kwargs = {"info_keywords": VAFN_INFO_KEYWORDS}
+        return hyperparams, env_wrapper, callbacks, vec_env_wrapper
+
+    # --- callbacks ---
+    def create_callbacks(self) -> None:
+        """The zoo's callbacks, with EvalCallback upgraded to also report collisions, plus the rollout collision rate."""
+        super().create_callbacks()
+        for index, callback in enumerate(self.callbacks):
+            if type(callback) is EvalCallback:
+                self.callbacks[index] = SuccessCollisionEvalCallback(
+                    callback.eval_env,
+                    callback_on_new_best=callback.callback_on_new_best,
+                    best_model_save_path=callback.best_model_save_path,
+                    n_eval_episodes=callback.n_eval_episodes,
+                    log_path=self.save_path,
+                    eval_freq=callback.eval_freq,
+                    deterministic=callback.deterministic,
+                )
+        if self._is_vafn_env():
+            self.callbacks.append(RolloutCollisionCallback())
+
+    # --- tuning ---
+    def objective(self, trial: optuna.Trial) -> float:
+        """The zoo's objective, with the worker recorded and the sampled policy_kwargs merged into the YAML's."""
+        trial.set_user_attr(WORKER_ATTR, worker_id())
+        sampler = HYPERPARAMS_SAMPLER[self.algo]
+        if not getattr(sampler, "merges_policy_kwargs", False):
+            HYPERPARAMS_SAMPLER[self.algo] = _merge_policy_kwargs(sampler)
+        _yaml_policy_kwargs.set(dict(self._hyperparams.get("policy_kwargs") or {}))
+        return super().objective(trial)
+
+    def hyperparameters_optimization(self) -> None:
+        """Recover trials of dead local workers, then run the zoo's optimisation loop."""
+        if self.storage is not None and self.study_name is not None:
+            recovered = recover_stale_trials(self.storage, self.study_name)
+            if recovered and self.verbose > 0:
+                print(f"Marked stale trials {recovered} (dead worker) as FAIL and re-queued their parameters")
+        super().hyperparameters_optimization()
