@@ -15,9 +15,11 @@ from vafn_gym.arm import Arm
 from vafn_gym.constants import (
     ACTION_DIM,
     ARM_IDS,
+    BASE_RADIUS,
     CONTROL_DT,
     DIST_INDEX,
     MAX_DISTANCE,
+    N_SUBSTEPS,
     NUM_ARMS,
     OBS_DIM,
     PHASE_COMPLETED,
@@ -46,6 +48,7 @@ PROXIMITY_PENALTY = 1.0
 BASE_EPISODE_STEPS = 50
 STEPS_PER_WAYPOINT = 80
 MARKER_RADIUS = 0.02
+TABLE_COLOUR = (0.55, 0.4, 0.25, 1.0)
 ARM_COLOURS = ((0.9, 0.2, 0.2, 0.8), (0.2, 0.7, 0.2, 0.8), (0.2, 0.3, 0.9, 0.8))
 ARM_PAIRS = tuple((a, b) for a in ARM_IDS for b in ARM_IDS if a < b)
 
@@ -70,6 +73,7 @@ class ThreeArmEnv(gym.Env):
     :param render_mode: "rgb_array" (headless TinyRenderer) or "human" (GUI window; needs a display).
     :param render_width: frame width in pixels.
     :param render_height: frame height in pixels.
+    :param n_substeps: physics steps (of ``PHYSICS_DT``) per control step; the default gives ``CONTROL_DT``.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": int(round(1.0 / CONTROL_DT))}
@@ -89,6 +93,7 @@ class ThreeArmEnv(gym.Env):
         render_mode: str | None = None,
         render_width: int = 480,
         render_height: int = 360,
+        n_substeps: int = N_SUBSTEPS,
     ) -> None:
         if task_family not in TASK_FAMILIES:
             raise ValueError(f"task_family must be one of {TASK_FAMILIES}, got {task_family!r}")
@@ -108,9 +113,12 @@ class ThreeArmEnv(gym.Env):
         self.sampler = TaskSampler(split, task_family, min_length, max_length, split_seed=split_seed)
         self._task: Instruction | None = None if instruction is None else Instruction.coerce(instruction)
 
-        self.sim = BulletSim(gui=render_mode == "human")
+        if n_substeps < 1:
+            raise ValueError(f"n_substeps must be >= 1, got {n_substeps}")
+        self.sim = BulletSim(gui=render_mode == "human", n_substeps=n_substeps)
         with self.sim.no_rendering():
             self.sim.load_urdf("plane.urdf", np.zeros(3))
+            self.sim.create_table_top(BASE_RADIUS, TABLE_COLOUR)
             self.arms = {arm_id: Arm(self.sim, arm_id) for arm_id in ARM_IDS}
             self.markers = {
                 arm_id: self.sim.create_marker(self.arms[arm_id].home, MARKER_RADIUS, ARM_COLOURS[arm_id - 1])
@@ -297,7 +305,7 @@ class ThreeArmEnv(gym.Env):
         if self.render_mode != "rgb_array":
             return None
         width, height = self.render_size
-        return self.sim.render(width, height, target=np.array([0.0, 0.0, 0.3]), distance=1.9, yaw=30.0, pitch=-35.0)
+        return self.sim.render(width, height, target=np.array([0.0, 0.0, 0.3]), distance=1.7, yaw=30.0, pitch=-30.0)
 
     def close(self) -> None:
         """Release the physics client; safe to call twice."""

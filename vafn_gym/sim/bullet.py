@@ -67,6 +67,13 @@ class BulletSim:
         visual = p.createVisualShape(p.GEOM_SPHERE, radius=radius, rgbaColor=rgba, physicsClientId=self.client)
         return p.createMultiBody(baseVisualShapeIndex=visual, basePosition=list(position), physicsClientId=self.client)
 
+    def create_table_top(self, radius: float, rgba: tuple[float, float, float, float]) -> int:
+        """A flat visual-only disc on the floor that marks the shared table."""
+        visual = p.createVisualShape(
+            p.GEOM_CYLINDER, radius=radius, length=0.002, rgbaColor=rgba, physicsClientId=self.client
+        )
+        return p.createMultiBody(baseVisualShapeIndex=visual, basePosition=[0, 0, 0.001], physicsClientId=self.client)
+
     def move_marker(self, body: int, position: np.ndarray) -> None:
         """Teleport a marker body."""
         p.resetBasePositionAndOrientation(body, list(position), [0, 0, 0, 1], physicsClientId=self.client)
