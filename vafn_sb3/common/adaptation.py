@@ -93,15 +93,16 @@ class SupportSet:
         """Number of transitions."""
         return len(self.rewards)
 
-    def discounted_returns(self, gamma: float, n_step: int | None = None, bootstrap: np.ndarray | None = None) -> np.ndarray:
-        """Per-step targets ``sum_j gamma^j r_{t+j}`` within each episode, truncated after ``n_step`` terms.
+    def nstep_plan(self, gamma: float, n_step: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Decompose n-step targets ``y_t = sum_j gamma^j r_{t+j} + c_t * V(s'_{e_t})`` into data-only parts.
+
+        A sum runs within the episode of ``t`` for at most ``n_step`` rewards (``None``: to the episode end, Monte
+        Carlo) and stops at transition ``e_t``; it bootstraps from ``V(s'_{e_t})`` unless ``e_t`` terminated.
 
         :param gamma: discount factor.
-        :param n_step: number of reward terms; ``None`` sums to the episode end (Monte Carlo).
-        :param bootstrap: optional ``(n,)`` value estimates ``V(s'_t)``; where a sum stops before a termination
-            (after ``n_step`` terms, or at a truncation or the end of the support), ``gamma^m * bootstrap`` of the last
-            summed transition is added.
-        :return: ``(n,)`` float32 targets.
+        :param n_step: number of reward terms (1 = one-step TD); ``None`` sums to the episode end.
+        :return: ``(reward_sums, stop_index, bootstrap_discount)``, each of shape ``(n,)``; ``bootstrap_discount`` is
+            ``gamma^m`` after ``m`` summed rewards, or 0 where the sum ends in a termination.
         """
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma}")
@@ -109,20 +110,33 @@ class SupportSet:
             raise ValueError(f"n_step must be >= 1 or None, got {n_step}")
         n = len(self)
         horizon = n if n_step is None else n_step
-        targets = np.zeros(n, dtype=np.float64)
+        reward_sums = np.zeros(n, dtype=np.float32)
+        stop_index = np.zeros(n, dtype=np.int64)
+        bootstrap_discount = np.zeros(n, dtype=np.float32)
         for t in range(n):
             total, discount, j = 0.0, 1.0, t
             while True:
                 total += discount * float(self.rewards[j])
                 discount *= gamma
-                stop_episode = bool(self.episode_ends[j])
-                if stop_episode or j - t + 1 >= horizon or j + 1 >= n:
-                    if bootstrap is not None and not bool(self.terminated[j]):
-                        total += discount * float(bootstrap[j])
+                if self.episode_ends[j] or j - t + 1 >= horizon:
                     break
                 j += 1
-            targets[t] = total
-        return targets.astype(np.float32)
+            reward_sums[t], stop_index[t] = total, j
+            bootstrap_discount[t] = 0.0 if self.terminated[j] else discount
+        return reward_sums, stop_index, bootstrap_discount
+
+    def discounted_returns(self, gamma: float, n_step: int | None = None, bootstrap: np.ndarray | None = None) -> np.ndarray:
+        """Per-step n-step targets (see :meth:`nstep_plan`); without ``bootstrap`` the value tail counts as 0.
+
+        :param gamma: discount factor.
+        :param n_step: number of reward terms; ``None`` sums to the episode end (Monte Carlo).
+        :param bootstrap: optional ``(n,)`` value estimates ``V(s'_t)`` used where a sum stops before a termination.
+        :return: ``(n,)`` float32 targets.
+        """
+        reward_sums, stop_index, bootstrap_discount = self.nstep_plan(gamma, n_step)
+        if bootstrap is None:
+            return reward_sums
+        return (reward_sums + bootstrap_discount * np.asarray(bootstrap, dtype=np.float32)[stop_index]).astype(np.float32)
 
 
 def collect_support(model: Any, env: gym.Env, task: Instruction | None, n_support: int, seed: int | None) -> SupportSet:

@@ -1,0 +1,201 @@
+"""Pure functions of parameter dicts for MAML-SAC: actor sampling, the inner adaptation step and the per-task query loss.
+
+Parameters are plain ``{name: tensor}`` dicts applied with :func:`torch.func.functional_call`; they are never written
+into the modules. Gradients of the inner losses come from :func:`torch.func.grad`, which composes with ``vmap`` over a
+meta-batch and with ordinary autograd for the outer (meta) gradient:
+
+* first order (default): the inner gradients are detached, so ``θ' = θ - lr * sg(g)`` and the meta-gradient flows
+  through the identity path only (FOMAML);
+* second order: the inner gradients keep their graph, so the meta-gradient includes the Hessian-vector terms.
+
+Which parameters each loop adapts: the inner loop adapts the critic φ (both Q-heads, a regression onto n-step targets of
+the support rewards) and then the actor θ (the SAC policy loss against the adapted critic), for ``steps`` rounds. The
+entropy coefficient, the target critic and the inner learning rates are meta-level only.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from stable_baselines3.sac.policies import Actor
+from torch import nn
+from torch.func import functional_call, grad
+
+#: Added inside ``log(1 - tanh(u)^2 + eps)``, as in SB3's squashed Gaussian.
+SQUASH_EPS = 1e-6
+_HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+
+Params = dict[str, torch.Tensor]
+
+
+class ActorDistribution(nn.Module):
+    """``forward(obs) -> (mean, log_std)`` of an SB3 SAC :class:`Actor`, so that ``functional_call`` can re-parametrise it.
+
+    Its parameter names are the actor's, prefixed with ``"actor."``.
+
+    :param actor: the SB3 SAC actor (not copied).
+    """
+
+    def __init__(self, actor: Actor) -> None:
+        super().__init__()
+        if actor.use_sde:
+            raise ValueError("MAML-SAC does not support gSDE actors (use_sde=True)")
+        self.actor = actor
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean and clamped log-std of the pre-squash Gaussian."""
+        mean, log_std, _ = self.actor.get_action_dist_params(obs)
+        return mean, log_std
+
+
+def parameters_of(module: nn.Module, detach: bool = False) -> Params:
+    """``{name: parameter}`` of ``module`` (detached clones when ``detach``)."""
+    if detach:
+        return {name: p.detach().clone() for name, p in module.named_parameters()}
+    return dict(module.named_parameters())
+
+
+def detached(params: Params) -> Params:
+    """The same dict with every tensor detached (shares storage)."""
+    return {name: p.detach() for name, p in params.items()}
+
+
+def sample_action(
+    actor: ActorDistribution, params: Params, obs: torch.Tensor, deterministic: bool = False
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Squashed-Gaussian action in [-1, 1] and its log-probability, reparameterised (SB3's formula, no distributions).
+
+    :param actor: the functional actor wrapper.
+    :param params: its parameters.
+    :param obs: ``(batch, obs_dim)`` observations.
+    :param deterministic: use the mean instead of a sample.
+    :return: ``(actions, log_prob)`` of shapes ``(batch, act_dim)`` and ``(batch,)``.
+    """
+    mean, log_std = functional_call(actor, params, (obs,))
+    std = log_std.exp()
+    noise = torch.zeros_like(mean) if deterministic else torch.randn_like(mean)
+    gaussian = mean + std * noise
+    actions = torch.tanh(gaussian)
+    log_prob = (-0.5 * noise.pow(2) - log_std - _HALF_LOG_2PI).sum(-1)
+    log_prob = log_prob - torch.log(1.0 - actions.pow(2) + SQUASH_EPS).sum(-1)
+    return actions, log_prob
+
+
+def min_q(critic: nn.Module, params: Params, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+    """Minimum over the critic's Q-heads, shape ``(batch,)``."""
+    q_values = functional_call(critic, params, (obs, actions))
+    return torch.min(torch.cat(q_values, dim=-1), dim=-1).values
+
+
+def critic_regression_loss(
+    critic_params: Params, critic: nn.Module, obs: torch.Tensor, actions: torch.Tensor, targets: torch.Tensor
+) -> torch.Tensor:
+    """SB3's critic loss ``0.5 * sum_heads MSE(Q_j(s, a), y)`` for fixed targets ``y`` of shape ``(batch,)``."""
+    q_values = functional_call(critic, critic_params, (obs, actions))
+    return 0.5 * sum(nn.functional.mse_loss(q.squeeze(-1), targets) for q in q_values)
+
+
+def actor_loss(
+    actor_params: Params,
+    actor: ActorDistribution,
+    critic: nn.Module,
+    critic_params: Params,
+    obs: torch.Tensor,
+    ent_coef: torch.Tensor,
+) -> torch.Tensor:
+    """SAC's policy loss ``E_s[α log π(ã|s) - min_j Q_j(s, ã)]`` with ``ã ~ π(·|s)`` reparameterised."""
+    actions, log_prob = sample_action(actor, actor_params, obs)
+    return (ent_coef * log_prob - min_q(critic, critic_params, obs, actions)).mean()
+
+
+def inner_adapt(
+    actor: ActorDistribution,
+    critic: nn.Module,
+    actor_params: Params,
+    critic_params: Params,
+    obs: torch.Tensor,
+    actions: torch.Tensor,
+    targets: torch.Tensor,
+    ent_coef: torch.Tensor,
+    actor_lr: torch.Tensor,
+    critic_lr: torch.Tensor,
+    steps: int,
+    second_order: bool,
+) -> tuple[Params, Params]:
+    """``steps`` rounds of (critic SGD step on the support targets, then actor SGD step against the adapted critic).
+
+    :param actor: functional actor wrapper.
+    :param critic: the SB3 critic module (used functionally).
+    :param actor_params: starting actor parameters θ.
+    :param critic_params: starting critic parameters φ.
+    :param obs: support observations ``(n, obs_dim)``.
+    :param actions: support actions ``(n, act_dim)`` (scaled to [-1, 1]).
+    :param targets: n-step/MC targets of the support transitions ``(n,)`` (constants).
+    :param ent_coef: entropy coefficient α (meta-level, detached).
+    :param actor_lr: inner step size of the actor.
+    :param critic_lr: inner step size of the critic.
+    :param steps: number of inner rounds K (0 returns the inputs).
+    :param second_order: keep the inner gradients' graph (true MAML) instead of detaching them (first-order MAML).
+    :return: adapted ``(actor_params, critic_params)``.
+    """
+    for _ in range(steps):
+        critic_grads = grad(critic_regression_loss)(critic_params, critic, obs, actions, targets)
+        if not second_order:
+            critic_grads = detached(critic_grads)
+        critic_params = {name: p - critic_lr * critic_grads[name] for name, p in critic_params.items()}
+        actor_grads = grad(actor_loss)(actor_params, actor, critic, critic_params, obs, ent_coef)
+        if not second_order:
+            actor_grads = detached(actor_grads)
+        actor_params = {name: p - actor_lr * actor_grads[name] for name, p in actor_params.items()}
+    return actor_params, critic_params
+
+
+def query_losses(
+    actor: ActorDistribution,
+    critic: nn.Module,
+    actor_params: Params,
+    critic_params: Params,
+    target_params: Params,
+    support: dict[str, torch.Tensor],
+    query: dict[str, torch.Tensor],
+    ent_coef: torch.Tensor,
+    actor_lr: torch.Tensor,
+    critic_lr: torch.Tensor,
+    steps: int,
+    gamma: float,
+    second_order: bool,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One task's meta-objective: adapt on the support set, then SAC's critic and actor losses of θ', φ' on the query.
+
+    The query critic target uses the meta-level target critic and the adapted actor (no gradient); the query actor loss
+    uses the adapted critic detached, so it does not train the critic head-on.
+
+    :param actor: functional actor wrapper.
+    :param critic: the SB3 critic module.
+    :param actor_params: meta actor parameters θ.
+    :param critic_params: meta critic parameters φ.
+    :param target_params: target critic parameters φ̄ (meta-level).
+    :param support: ``observations``, ``actions``, ``targets`` of the task's support set.
+    :param query: ``observations``, ``actions``, ``next_observations``, ``rewards``, ``dones`` (shape ``(b,)``) of a
+        query minibatch.
+    :param ent_coef: α (detached).
+    :param actor_lr: inner actor step size.
+    :param critic_lr: inner critic step size.
+    :param steps: inner rounds K.
+    :param gamma: discount factor.
+    :param second_order: differentiate through the inner step.
+    :return: ``(critic_loss, actor_loss, mean log π of the adapted actor on query states (detached))``.
+    """
+    adapted_actor, adapted_critic = inner_adapt(
+        actor, critic, actor_params, critic_params, support["observations"], support["actions"], support["targets"],
+        ent_coef, actor_lr, critic_lr, steps, second_order,
+    )
+    with torch.no_grad():
+        next_actions, next_log_prob = sample_action(actor, detached(adapted_actor), query["next_observations"])
+        next_value = min_q(critic, target_params, query["next_observations"], next_actions) - ent_coef * next_log_prob
+        targets = query["rewards"] + (1.0 - query["dones"]) * gamma * next_value
+    critic_loss = critic_regression_loss(adapted_critic, critic, query["observations"], query["actions"], targets)
+    actions, log_prob = sample_action(actor, adapted_actor, query["observations"])
+    policy_loss = (ent_coef * log_prob - min_q(critic, detached(adapted_critic), query["observations"], actions)).mean()
+    return critic_loss, policy_loss, log_prob.detach().mean()

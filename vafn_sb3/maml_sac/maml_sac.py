@@ -1,0 +1,549 @@
+"""MAML-SAC: Soft Actor-Critic meta-trained with MAML inner/outer updates over a task distribution (algo key ``maml_sac``).
+
+Not to be confused with "Meta-SAC" (arXiv 2007.01932), which meta-learns SAC's entropy temperature only.
+
+One meta-iteration (after an optional warm-up of plain multi-task SAC):
+
+1. sample ``meta_batch_size`` training tasks from a fixed pool;
+2. per task: ``env_method("set_task", task)`` on every env, reset, collect ``n_support`` transitions with the stochastic
+   meta-policy π_θ into the task's support set (replaced every iteration), adapt without a graph (``inner_steps``
+   rounds of critic-then-actor SGD, see :mod:`vafn_sb3.maml_sac.functional`), collect ``n_query`` transitions with the
+   adapted stochastic policy π_θ' into the task's query replay buffer (a FIFO kept across iterations);
+3. ``outer_steps`` meta-gradient steps: per task, re-adapt on its whole support set (with the inner graph when
+   ``second_order``), evaluate SAC's critic and actor losses of (θ'_i, φ'_i) on a query minibatch, average over tasks,
+   step SB3's own actor/critic optimisers (which hold θ and φ), the entropy coefficient (on the adapted actors'
+   log-probs) and, if learned, the inner step sizes; Polyak-update the target critic.
+
+Parameters adapted by the inner loop: the critic φ (both Q-heads) and the actor θ. Meta-level only: the entropy
+coefficient α, the target critic φ̄ and the inner step sizes.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from typing import Any, ClassVar, Sequence, TypeVar
+
+import gymnasium as gym
+import numpy as np
+import torch
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
+from stable_baselines3.common.utils import polyak_update
+from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.sac import SAC
+from stable_baselines3.sac.policies import CnnPolicy, MlpPolicy, MultiInputPolicy
+from torch.func import vmap
+
+from vafn_gym.instructions import Instruction
+from vafn_gym.tasks import TaskSampler
+from vafn_sb3.common.adaptation import SupportSet, collect_support
+from vafn_sb3.maml_sac.functional import (
+    ActorDistribution,
+    Params,
+    detached,
+    inner_adapt,
+    min_q,
+    parameters_of,
+    query_losses,
+    sample_action,
+)
+
+SelfMAMLSAC = TypeVar("SelfMAMLSAC", bound="MAMLSAC")
+
+#: Ways of evaluating the per-task meta-objective over the meta-batch.
+META_BATCH_MODES = ("vmap", "loop")
+#: Completed episodes remembered for the pre/post-adaptation TensorBoard scalars.
+EPISODE_STATS_WINDOW = 100
+
+
+class AdaptedSACPolicy:
+    """A SAC actor with adapted parameters, usable like ``model.predict`` (returned by :meth:`MAMLSAC.adapt`).
+
+    The parameters live in a dict, applied with ``functional_call``; the model's modules are not modified (they are
+    re-parametrised only for the duration of a call, so do not call ``model.predict`` concurrently from another thread).
+
+    :param policy: the model's SB3 policy (observation preprocessing, action unscaling).
+    :param actor: functional wrapper of the model's actor.
+    :param actor_params: adapted actor parameters.
+    :param critic_params: adapted critic parameters (kept for inspection).
+    """
+
+    def __init__(self, policy: BasePolicy, actor: ActorDistribution, actor_params: Params, critic_params: Params) -> None:
+        self.policy = policy
+        self.actor = actor
+        self.actor_params = actor_params
+        self.critic_params = critic_params
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, None]:
+        """Action(s) of the adapted policy for one observation or a batch (``state``/``episode_start`` are ignored)."""
+        obs_tensor, vectorized = self.policy.obs_to_tensor(observation)
+        with torch.no_grad():
+            actions, _ = sample_action(self.actor, self.actor_params, obs_tensor, deterministic=deterministic)
+        actions = self.policy.unscale_action(actions.cpu().numpy().reshape((-1, *self.policy.action_space.shape)))
+        return (actions if vectorized else actions[0]), None
+
+
+class MAMLSAC(SAC):
+    """SAC meta-trained with MAML over the env's task distribution; :meth:`adapt` specialises it to one task.
+
+    Takes every :class:`~stable_baselines3.SAC` argument (``kwargs``), plus:
+
+    :param policy: SAC policy (``"MlpPolicy"``); no gSDE, no BatchNorm.
+    :param env: env or VecEnv whose envs expose ``set_task`` (all envs run the same task at a time).
+    :param meta_batch_size: tasks per meta-iteration (5, as in the paper).
+    :param n_support: support transitions per task per iteration, collected with the stochastic meta-policy.
+    :param n_query: query transitions per task per iteration, collected with the stochastic adapted policy.
+    :param inner_steps: inner rounds K during meta-training (one critic then one actor SGD step per round).
+    :param inner_actor_lr: initial inner step size of the actor.
+    :param inner_critic_lr: initial inner step size of the critic.
+    :param inner_n_step: rewards summed in the inner critic targets (1 = TD, ``None`` = Monte Carlo to the episode end);
+        tails bootstrap from the target critic and the meta-actor.
+    :param learn_inner_lr: meta-learn the two inner step sizes (log-parameterised, own Adam optimiser).
+    :param inner_lr_learning_rate: learning rate of that optimiser.
+    :param second_order: differentiate through the inner step (``create_graph``); default first-order MAML.
+    :param outer_steps: meta-gradient steps per meta-iteration (off-policy reuse of the query buffers).
+    :param n_train_tasks: size of the fixed pool of training tasks drawn from the env's sampler (``train_tasks``
+        overrides it).
+    :param train_tasks: explicit training tasks; ``None`` draws the pool from ``env``'s own task sampler.
+    :param query_buffer_size: capacity of each task's query FIFO.
+    :param warmup_steps: env steps of plain multi-task SAC (env-sampled tasks) before meta-training starts.
+    :param meta_batch_mode: ``"vmap"`` (the meta-batch in one ``torch.func.vmap`` call) or ``"loop"`` (one call per task).
+    :param max_grad_norm: clip the meta-gradient of actor and critic to this norm.
+    :param task_seed: seed of the task pool and of the meta-batch draws.
+    :param kwargs: every other :class:`~stable_baselines3.SAC` argument (``learning_rate``, ``batch_size``, ``gamma``,
+        ``tau``, ``ent_coef``, ``policy_kwargs``, ``tensorboard_log``, ``seed``, ``verbose``, ...).
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "MlpPolicy": MlpPolicy,
+        "CnnPolicy": CnnPolicy,
+        "MultiInputPolicy": MultiInputPolicy,
+    }
+
+    def __init__(
+        self,
+        policy: str | type[BasePolicy],
+        env: GymEnv | str | None,
+        meta_batch_size: int = 5,
+        n_support: int = 200,
+        n_query: int = 200,
+        inner_steps: int = 1,
+        inner_actor_lr: float = 0.01,
+        inner_critic_lr: float = 0.005,
+        inner_n_step: int | None = 10,
+        learn_inner_lr: bool = True,
+        inner_lr_learning_rate: float = 1e-3,
+        second_order: bool = False,
+        outer_steps: int = 20,
+        n_train_tasks: int = 40,
+        train_tasks: Sequence[Any] | None = None,
+        query_buffer_size: int = 10_000,
+        warmup_steps: int = 0,
+        meta_batch_mode: str = "vmap",
+        max_grad_norm: float = 10.0,
+        task_seed: int = 0,
+        _init_setup_model: bool = True,
+        **kwargs: Any,
+    ) -> None:
+        for name, value in (("meta_batch_size", meta_batch_size), ("n_support", n_support), ("n_query", n_query),
+                            ("outer_steps", outer_steps), ("n_train_tasks", n_train_tasks),
+                            ("query_buffer_size", query_buffer_size)):
+            if int(value) < 1:
+                raise ValueError(f"{name} must be >= 1, got {value}")
+        if inner_steps < 0 or warmup_steps < 0:
+            raise ValueError(f"inner_steps and warmup_steps must be >= 0, got {inner_steps}, {warmup_steps}")
+        if inner_actor_lr <= 0 or inner_critic_lr <= 0:
+            raise ValueError(f"inner learning rates must be > 0, got {inner_actor_lr}, {inner_critic_lr}")
+        if inner_n_step is not None and inner_n_step < 1:
+            raise ValueError(f"inner_n_step must be >= 1 or None, got {inner_n_step}")
+        if meta_batch_mode not in META_BATCH_MODES:
+            raise ValueError(f"meta_batch_mode must be one of {META_BATCH_MODES}, got {meta_batch_mode!r}")
+        if kwargs.get("use_sde", False):
+            raise ValueError("MAML-SAC does not support use_sde=True")
+        self.meta_batch_size = int(meta_batch_size)
+        self.n_support = int(n_support)
+        self.n_query = int(n_query)
+        self.inner_steps = int(inner_steps)
+        self.inner_actor_lr = float(inner_actor_lr)
+        self.inner_critic_lr = float(inner_critic_lr)
+        self.inner_n_step = inner_n_step
+        self.learn_inner_lr = bool(learn_inner_lr)
+        self.inner_lr_learning_rate = float(inner_lr_learning_rate)
+        self.second_order = bool(second_order)
+        self.outer_steps = int(outer_steps)
+        self.n_train_tasks = int(n_train_tasks)
+        self.train_tasks = None if train_tasks is None else [Instruction.coerce(t) for t in train_tasks]
+        self.query_buffer_size = int(query_buffer_size)
+        self.warmup_steps = int(warmup_steps)
+        self.meta_batch_mode = meta_batch_mode
+        self.max_grad_norm = float(max_grad_norm)
+        self.task_seed = int(task_seed)
+        self.meta_iterations = 0
+        self.task_rng = np.random.default_rng(task_seed)
+        super().__init__(policy, env, _init_setup_model=False, **kwargs)
+        if _init_setup_model:
+            self._setup_model()
+
+    # --- setup, save/load ---
+    def _setup_model(self) -> None:
+        """SAC's setup, then the functional actor, the (log) inner step sizes and their optimiser, the per-task buffers."""
+        super()._setup_model()
+        self.actor_distribution = ActorDistribution(self.actor)
+        initial = torch.tensor([self.inner_actor_lr, self.inner_critic_lr], device=self.device).log()
+        self.log_inner_lrs = initial.requires_grad_(self.learn_inner_lr)
+        self.inner_lr_optimizer = (
+            torch.optim.Adam([self.log_inner_lrs], lr=self.inner_lr_learning_rate) if self.learn_inner_lr else None
+        )
+        self.support_sets: dict[int, SupportSet] = {}
+        self.query_buffers: dict[int, ReplayBuffer] = {}
+        self.pre_adaptation_episodes: deque[dict[str, float]] = deque(maxlen=EPISODE_STATS_WINDOW)
+        self.post_adaptation_episodes: deque[dict[str, float]] = deque(maxlen=EPISODE_STATS_WINDOW)
+
+    def _excluded_save_params(self) -> list[str]:
+        """Aliases and the per-task buffers (rebuilt on load) are not pickled."""
+        return super()._excluded_save_params() + [
+            "actor_distribution", "support_sets", "query_buffers", "pre_adaptation_episodes",
+            "post_adaptation_episodes",
+        ]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        """SAC's state dicts and variables, plus the inner step sizes and their optimiser."""
+        state_dicts, variables = super()._get_torch_save_params()
+        if self.inner_lr_optimizer is not None:
+            state_dicts = [*state_dicts, "inner_lr_optimizer"]
+        return state_dicts, [*variables, "log_inner_lrs"]
+
+    # --- helpers ---
+    @property
+    def inner_lrs(self) -> tuple[float, float]:
+        """Current (actor, critic) inner step sizes."""
+        actor_lr, critic_lr = self.log_inner_lrs.detach().exp().tolist()
+        return actor_lr, critic_lr
+
+    def _ent_coef(self) -> torch.Tensor:
+        if self.ent_coef_optimizer is not None:
+            return self.log_ent_coef.detach().exp()
+        return self.ent_coef_tensor
+
+    def _task_pool(self) -> list[Instruction]:
+        if self.train_tasks is None:
+            sampler = self.env.get_attr("sampler", indices=0)[0]
+            if not isinstance(sampler, TaskSampler):
+                raise TypeError("the env has no TaskSampler 'sampler'; pass train_tasks= to MAMLSAC")
+            self.train_tasks = sampler.fixed_set(self.n_train_tasks, seed=self.task_seed)
+        return self.train_tasks
+
+    def _switch_task(self, task: Instruction | None) -> None:
+        """Give every env ``task`` and start fresh episodes, so that no episode straddles two tasks."""
+        self.env.env_method("set_task", task)
+        self._last_obs = self.env.reset()
+        self._last_episode_starts = np.ones((self.env.num_envs,), dtype=bool)
+
+    def _support_tensors(self, supports: Sequence[SupportSet]) -> dict[str, torch.Tensor]:
+        """Stack support sets (equal lengths) into ``(M, n, ...)`` tensors, with the n-step plan of their targets."""
+        plans = [support.nstep_plan(self.gamma, self.inner_n_step) for support in supports]
+        as_tensor = lambda arrays, dtype=torch.float32: torch.as_tensor(np.stack(arrays), dtype=dtype, device=self.device)  # noqa: E731
+        return {
+            "observations": as_tensor([s.observations for s in supports]),
+            "actions": as_tensor([self.policy.scale_action(s.actions) for s in supports]),
+            "next_observations": as_tensor([s.next_observations for s in supports]),
+            "reward_sums": as_tensor([p[0] for p in plans]),
+            "stop_index": as_tensor([p[1] for p in plans], torch.long),
+            "bootstrap_discount": as_tensor([p[2] for p in plans]),
+        }
+
+    def _support_targets(self, support: dict[str, torch.Tensor], ent_coef: torch.Tensor) -> torch.Tensor:
+        """n-step targets ``(M, n)`` of stacked supports, bootstrapped from the target critic and the meta-actor."""
+        with torch.no_grad():
+            next_obs = support["next_observations"].flatten(0, 1)
+            actor_params = detached(parameters_of(self.actor_distribution))
+            next_actions, next_log_prob = sample_action(self.actor_distribution, actor_params, next_obs)
+            target_params = parameters_of(self.critic_target)
+            values = min_q(self.critic_target, target_params, next_obs, next_actions) - ent_coef * next_log_prob
+            values = values.view(support["reward_sums"].shape)
+            return support["reward_sums"] + support["bootstrap_discount"] * values.gather(1, support["stop_index"])
+
+    def adapted_parameters(self, supports: Sequence[SupportSet], steps: int) -> list[tuple[Params, Params]]:
+        """First-order, graph-free adaptation of (actor, critic) parameters on each support set; the model is untouched.
+
+        :param supports: one support set per task (equal lengths).
+        :param steps: inner rounds K.
+        :return: per task, detached adapted ``(actor_params, critic_params)``.
+        """
+        ent_coef = self._ent_coef()
+        tensors = self._support_tensors(supports)
+        targets = self._support_targets(tensors, ent_coef)
+        actor_lr, critic_lr = self.log_inner_lrs.detach().exp()
+        adapted = []
+        with torch.no_grad():
+            for i in range(len(supports)):
+                actor_params, critic_params = inner_adapt(
+                    self.actor_distribution, self.critic,
+                    parameters_of(self.actor_distribution, detach=True), parameters_of(self.critic, detach=True),
+                    tensors["observations"][i], tensors["actions"][i], targets[i],
+                    ent_coef, actor_lr, critic_lr, steps, second_order=False,
+                )
+                adapted.append((detached(actor_params), detached(critic_params)))
+        return adapted
+
+    # --- data collection ---
+    def _rollout(
+        self, n_transitions: int, actor_params: Params | None, callback: BaseCallback,
+        query_buffer: ReplayBuffer | None, episode_stats: deque,
+    ) -> tuple[SupportSet, bool]:
+        """Step every env with the stochastic policy (meta if ``actor_params`` is None) for ``n_transitions`` in total.
+
+        Transitions go to the main replay buffer and, if given, ``query_buffer``; completed episodes go to
+        ``episode_stats``. Returns the transitions (env by env, so episodes are contiguous) and whether to continue.
+        """
+        n_envs = self.env.num_envs
+        steps = -(-n_transitions // n_envs)
+        params = actor_params if actor_params is not None else detached(parameters_of(self.actor_distribution))
+        columns: dict[str, list] = {name: [] for name in SupportSet.__dataclass_fields__}
+        episode_returns = np.zeros(n_envs)
+        episode_collided = np.zeros(n_envs, dtype=bool)
+        self.policy.set_training_mode(False)
+        for _ in range(steps):
+            obs_tensor, _ = self.policy.obs_to_tensor(self._last_obs)
+            with torch.no_grad():
+                scaled, _ = sample_action(self.actor_distribution, params, obs_tensor)
+            scaled = scaled.cpu().numpy()
+            actions = self.policy.unscale_action(scaled)
+            new_obs, rewards, dones, infos = self.env.step(actions)
+            self.num_timesteps += n_envs
+            callback.update_locals(locals())
+            if not callback.on_step():
+                return SupportSet(**{k: np.asarray(v, dtype=np.float32) for k, v in columns.items()}), False
+            self._update_info_buffer(infos, dones)
+            next_obs = new_obs.copy()
+            for i, done in enumerate(dones):
+                if done and infos[i].get("terminal_observation") is not None:
+                    next_obs[i] = infos[i]["terminal_observation"]
+            for buffer in (self.replay_buffer, query_buffer):
+                if buffer is not None:
+                    buffer.add(self._last_obs, next_obs, scaled, rewards, dones, infos)
+            terminated = [bool(d) and not info.get("TimeLimit.truncated", False) for d, info in zip(dones, infos)]
+            columns["observations"].append(self._last_obs)
+            columns["actions"].append(actions)
+            columns["rewards"].append(rewards)
+            columns["next_observations"].append(next_obs)
+            columns["terminated"].append(terminated)
+            columns["episode_ends"].append(dones)
+            columns["successes"].append([info.get("is_success", False) for info in infos])
+            columns["collisions"].append([info.get("collision", False) for info in infos])
+            episode_returns += rewards
+            episode_collided |= np.array([info.get("collision", False) for info in infos])
+            for i, done in enumerate(dones):
+                if done:
+                    episode_stats.append({"return": float(episode_returns[i]), "success": float(infos[i].get("is_success", False)),
+                                          "collision": float(episode_collided[i])})
+                    episode_returns[i], episode_collided[i] = 0.0, False
+            self._last_obs = new_obs
+            self._last_episode_starts = dones
+            self._episode_num += int(np.sum(dones))
+            self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
+        # (steps, n_envs, ...) -> (n_envs * steps, ...), env by env; the budget cuts each env's last episode.
+        arrays = {k: np.swapaxes(np.asarray(v, dtype=np.float32), 0, 1) for k, v in columns.items()}
+        arrays["episode_ends"][:, -1] = 1.0
+        return SupportSet(**{k: v.reshape(n_envs * steps, *v.shape[2:]) for k, v in arrays.items()}), True
+
+    def _query_buffer(self, task_id: int) -> ReplayBuffer:
+        if task_id not in self.query_buffers:
+            self.query_buffers[task_id] = ReplayBuffer(
+                self.query_buffer_size, self.observation_space, self.action_space, device=self.device,
+                n_envs=self.n_envs, optimize_memory_usage=False, handle_timeout_termination=True,
+            )
+        return self.query_buffers[task_id]
+
+    # --- meta-training ---
+    def meta_train(self, task_ids: Sequence[int]) -> None:
+        """``outer_steps`` meta-gradient steps on the support sets and query buffers of ``task_ids``."""
+        self.policy.set_training_mode(True)
+        self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
+        support = self._support_tensors([self.support_sets[t] for t in task_ids])
+        actor_params = parameters_of(self.actor_distribution)
+        critic_params = parameters_of(self.critic)
+        target_params = parameters_of(self.critic_target)
+        critic_losses, actor_losses, ent_coefs, ent_coef_losses = [], [], [], []
+        for _ in range(self.outer_steps):
+            ent_coef = self._ent_coef()
+            support["targets"] = self._support_targets(support, ent_coef)
+            samples = [self.query_buffers[t].sample(self.batch_size, env=self._vec_normalize_env) for t in task_ids]
+            query = {
+                "observations": torch.stack([s.observations for s in samples]),
+                "actions": torch.stack([s.actions for s in samples]),
+                "next_observations": torch.stack([s.next_observations for s in samples]),
+                "rewards": torch.stack([s.rewards.squeeze(-1) for s in samples]),
+                "dones": torch.stack([s.dones.squeeze(-1) for s in samples]),
+            }
+            actor_lr, critic_lr = self.log_inner_lrs.exp()
+
+            def task_objective(task_support: dict[str, torch.Tensor], task_query: dict[str, torch.Tensor]):
+                return query_losses(
+                    self.actor_distribution, self.critic, actor_params, critic_params, target_params, task_support,
+                    task_query, ent_coef, actor_lr, critic_lr, self.inner_steps, self.gamma, self.second_order,
+                )
+
+            inner_support = {k: support[k] for k in ("observations", "actions", "targets")}
+            if self.meta_batch_mode == "vmap":
+                critic_loss, actor_loss, log_prob = vmap(task_objective, randomness="different")(inner_support, query)
+            else:
+                per_task = [
+                    task_objective({k: v[i] for k, v in inner_support.items()}, {k: v[i] for k, v in query.items()})
+                    for i in range(len(task_ids))
+                ]
+                critic_loss, actor_loss, log_prob = (torch.stack(column) for column in zip(*per_task))
+            critic_loss, actor_loss = critic_loss.mean(), actor_loss.mean()
+
+            optimizers = [self.actor.optimizer, self.critic.optimizer]
+            if self.inner_lr_optimizer is not None:
+                optimizers.append(self.inner_lr_optimizer)
+            for optimizer in optimizers:
+                optimizer.zero_grad()
+            (critic_loss + actor_loss).backward()
+            torch.nn.utils.clip_grad_norm_(self.actor.parameters(), self.max_grad_norm)
+            torch.nn.utils.clip_grad_norm_(self.critic.parameters(), self.max_grad_norm)
+            for optimizer in optimizers:
+                optimizer.step()
+
+            if self.ent_coef_optimizer is not None:
+                ent_coef_loss = -(self.log_ent_coef * (log_prob.mean() + self.target_entropy)).mean()
+                self.ent_coef_optimizer.zero_grad()
+                ent_coef_loss.backward()
+                self.ent_coef_optimizer.step()
+                ent_coef_losses.append(ent_coef_loss.item())
+
+            self._n_updates += 1
+            if self._n_updates % self.target_update_interval == 0:
+                polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+                polyak_update(self.batch_norm_stats, self.batch_norm_stats_target, 1.0)
+            critic_losses.append(critic_loss.item())
+            actor_losses.append(actor_loss.item())
+            ent_coefs.append(ent_coef.item())
+
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/meta_critic_loss", float(np.mean(critic_losses)))
+        self.logger.record("train/meta_actor_loss", float(np.mean(actor_losses)))
+        self.logger.record("train/ent_coef", float(np.mean(ent_coefs)))
+        if ent_coef_losses:
+            self.logger.record("train/ent_coef_loss", float(np.mean(ent_coef_losses)))
+        actor_lr, critic_lr = self.inner_lrs
+        self.logger.record("train/inner_actor_lr", actor_lr)
+        self.logger.record("train/inner_critic_lr", critic_lr)
+
+    def _meta_iteration(self, callback: BaseCallback) -> bool:
+        """Collect support and query data for one meta-batch, then take the outer steps; False if a callback stopped."""
+        pool = self._task_pool()
+        task_ids = self.task_rng.choice(len(pool), size=self.meta_batch_size, replace=self.meta_batch_size > len(pool))
+        for task_id in task_ids:
+            self._switch_task(pool[task_id])
+            support, go_on = self._rollout(self.n_support, None, callback, None, self.pre_adaptation_episodes)
+            if not go_on:
+                return False
+            self.support_sets[int(task_id)] = support
+            actor_params, _ = self.adapted_parameters([support], self.inner_steps)[0]
+            self._switch_task(pool[task_id])
+            _, go_on = self._rollout(self.n_query, actor_params, callback, self._query_buffer(int(task_id)),
+                                     self.post_adaptation_episodes)
+            if not go_on:
+                return False
+        self.meta_train([int(t) for t in task_ids])
+        self.meta_iterations += 1
+        return True
+
+    def _record_adaptation_stats(self) -> None:
+        for prefix, episodes in (("pre", self.pre_adaptation_episodes), ("post", self.post_adaptation_episodes)):
+            if episodes:
+                for key, name in (("return", "return"), ("success", "success_rate"), ("collision", "collision_rate")):
+                    self.logger.record(f"meta/{prefix}_adaptation_{name}", float(np.mean([e[key] for e in episodes])))
+
+    def learn(
+        self: SelfMAMLSAC,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "MAMLSAC",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfMAMLSAC:
+        """Warm-up (plain multi-task SAC for ``warmup_steps``), then meta-iterations until ``total_timesteps`` env steps.
+
+        :param total_timesteps: env steps in total (support, query and warm-up interaction all count).
+        :param callback: SB3 callback(s), called after every env step.
+        :param log_interval: dump the logs every this many meta-iterations (warm-up: episodes, as in SAC).
+        :param tb_log_name: TensorBoard run name.
+        :param reset_num_timesteps: start the step counter (and the TensorBoard run) anew.
+        :param progress_bar: show a progress bar (needs tqdm and rich).
+        :return: the trained model.
+        """
+        total_timesteps, callback = self._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        callback.on_training_start(locals(), globals())
+        while self.num_timesteps < total_timesteps:
+            if self.num_timesteps < self.warmup_steps:
+                rollout = self.collect_rollouts(
+                    self.env, train_freq=self.train_freq, action_noise=self.action_noise, callback=callback,
+                    learning_starts=self.learning_starts, replay_buffer=self.replay_buffer, log_interval=log_interval,
+                )
+                if not rollout.continue_training:
+                    break
+                if self.num_timesteps > self.learning_starts:
+                    gradient_steps = self.gradient_steps if self.gradient_steps >= 0 else rollout.episode_timesteps
+                    if gradient_steps > 0:
+                        self.train(batch_size=self.batch_size, gradient_steps=gradient_steps)
+                continue
+            if not self._meta_iteration(callback):
+                break
+            if self.meta_iterations % log_interval == 0:
+                self._record_adaptation_stats()
+                self._dump_logs()
+        self.env.env_method("set_task", None)
+        callback.on_training_end()
+        return self
+
+    # --- fast adaptation ---
+    def adapt(
+        self, env: gym.Env, task: Any = None, n_support: int | None = None, k: int | None = None, seed: int | None = None,
+    ) -> AdaptedSACPolicy:
+        """Collect ``n_support`` stochastic transitions on ``env`` (task ``task``) and take ``k`` inner rounds.
+
+        Follows :class:`vafn_sb3.common.adaptation.Adaptable`: the model's parameters, target critic, entropy
+        coefficient, inner step sizes and training mode are restored in a ``finally`` block (optimisers and buffers are
+        never touched), so they are bit-identical afterwards, also when adaptation raises.
+
+        :param env: a single (non-vectorised) env of the same spaces, exposing ``unwrapped.set_task``.
+        :param task: the instruction (anything ``Instruction.coerce`` accepts); ``None`` keeps the env's task.
+        :param n_support: support transitions (default: the meta-training ``n_support``).
+        :param k: inner rounds (default: the meta-training ``inner_steps``); 0 returns the meta-policy as a dict copy.
+        :param seed: seed of the support rollouts.
+        :return: the adapted policy.
+        """
+        n_support = self.n_support if n_support is None else int(n_support)
+        k = self.inner_steps if k is None else int(k)
+        if k < 0:
+            raise ValueError(f"k must be >= 0, got {k}")
+        if isinstance(env, VecEnv):
+            raise TypeError("adapt() takes a single gymnasium env, not a VecEnv")
+        if env.observation_space.shape != self.observation_space.shape:
+            raise ValueError(f"env observation shape {env.observation_space.shape} != model's {self.observation_space.shape}")
+        snapshot = {name: t.detach().clone() for name, t in self.policy.state_dict().items()}
+        variables = {name: getattr(self, name).detach().clone() for name in self._get_torch_save_params()[1]}
+        training = self.policy.training
+        try:
+            support = collect_support(self, env, None if task is None else Instruction.coerce(task), n_support, seed)
+            actor_params, critic_params = self.adapted_parameters([support], k)[0]
+            return AdaptedSACPolicy(self.policy, self.actor_distribution, actor_params, critic_params)
+        finally:
+            with torch.no_grad():
+                self.policy.load_state_dict(snapshot)
+                for name, value in variables.items():
+                    getattr(self, name).copy_(value)
+            self.policy.set_training_mode(training)
