@@ -504,7 +504,7 @@ class MAMLSAC(SAC):
                 break
             if self.meta_iterations % log_interval == 0:
                 self._record_adaptation_stats()
-                self._dump_logs()
+                self.dump_logs()
         self.env.env_method("set_task", None)
         callback.on_training_end()
         return self

@@ -1,0 +1,219 @@
+"""MAML-SAC: functional pieces, first- vs second-order meta-gradients, learn/save/load, and the adapt() contract."""
+
+from __future__ import annotations
+
+import glob
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from stable_baselines3.common.env_util import make_vec_env
+from torch.func import functional_call
+
+import vafn_gym  # noqa: F401  (registers the env IDs)
+from vafn_gym.constants import ACTION_DIM, OBS_DIM
+from vafn_gym.tasks import TaskSampler
+from vafn_sb3.common.adaptation import Adaptable, SupportSet, collect_support, evaluate_adaptation
+from vafn_sb3.maml_sac import MAMLSAC
+from vafn_sb3.maml_sac.functional import ActorDistribution, inner_adapt, parameters_of, query_losses
+
+ENV_ID = "VAFN/ThreeArmReachHidden-v0"
+#: Short episodes so that CI-sized rollouts contain complete episodes.
+ENV_KWARGS = {"max_length": 1, "max_episode_steps": 30}
+TINY = {"net_arch": [16, 16]}
+
+torch.set_num_threads(1)
+
+
+def tiny_model(env=None, **kwargs) -> MAMLSAC:
+    """A MAML-SAC with tiny networks and CI-sized budgets."""
+    env = env if env is not None else gym.make(ENV_ID, **ENV_KWARGS)
+    settings = dict(
+        meta_batch_size=2, n_support=32, n_query=32, outer_steps=2, batch_size=16, n_train_tasks=4,
+        policy_kwargs=TINY, learning_starts=0, seed=0,
+    )
+    settings.update(kwargs)
+    return MAMLSAC("MlpPolicy", env, **settings)
+
+
+def random_batch(n: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
+    """Random transitions of the env's shapes."""
+    return {
+        "observations": torch.randn(n, OBS_DIM, generator=generator),
+        "actions": torch.rand(n, ACTION_DIM, generator=generator) * 2 - 1,
+        "next_observations": torch.randn(n, OBS_DIM, generator=generator),
+        "rewards": torch.randn(n, generator=generator),
+        "dones": torch.zeros(n),
+        "targets": torch.randn(n, generator=generator),
+    }
+
+
+@pytest.fixture(scope="module")
+def model() -> MAMLSAC:
+    return tiny_model()
+
+
+def test_functional_key_sets_equal_modules(model):
+    actor_keys = set(parameters_of(model.actor_distribution))
+    assert actor_keys == {f"actor.{name}" for name, _ in model.actor.named_parameters()}
+    assert set(parameters_of(model.critic)) == {name for name, _ in model.critic.named_parameters()}
+    obs = torch.randn(4, OBS_DIM)
+    # strict=True fails on any missing or unexpected key
+    mean, _ = functional_call(model.actor_distribution, parameters_of(model.actor_distribution), (obs,), strict=True)
+    assert torch.allclose(mean, model.actor.get_action_dist_params(obs)[0])
+
+
+def test_inner_step_changes_every_parameter(model):
+    batch = random_batch(32, torch.Generator().manual_seed(0))
+    actor0, critic0 = parameters_of(model.actor_distribution, True), parameters_of(model.critic, True)
+    args = (batch["observations"], batch["actions"], batch["targets"], torch.tensor(0.1), torch.tensor(0.01),
+            torch.tensor(0.01))
+    same_actor, same_critic = inner_adapt(model.actor_distribution, model.critic, actor0, critic0, *args, 0, False)
+    assert all(torch.equal(same_actor[k], actor0[k]) for k in actor0)
+    actor1, critic1 = inner_adapt(model.actor_distribution, model.critic, actor0, critic0, *args, 1, False)
+    assert set(actor1) == set(actor0) and set(critic1) == set(critic0)
+    assert all(not torch.equal(actor1[k], actor0[k]) for k in actor0)
+    assert all(not torch.equal(critic1[k], critic0[k]) for k in critic0)
+    # the module itself is not modified
+    assert all(torch.equal(p, critic0[k]) for k, p in model.critic.named_parameters())
+
+
+def meta_gradient(model: MAMLSAC, second_order: bool) -> dict[str, torch.Tensor]:
+    """Meta-gradient of one task's query loss w.r.t. the meta-parameters (fixed sampling noise)."""
+    generator = torch.Generator().manual_seed(1)
+    support, query = random_batch(32, generator), random_batch(16, generator)
+    actor_params = parameters_of(model.actor_distribution, True)
+    critic_params = parameters_of(model.critic, True)
+    leaves = {**actor_params, **critic_params}
+    for tensor in leaves.values():
+        tensor.requires_grad_(True)
+    torch.manual_seed(2)
+    critic_loss, actor_loss, _ = query_losses(
+        model.actor_distribution, model.critic, actor_params, critic_params, parameters_of(model.critic_target),
+        support, query, torch.tensor(0.1), torch.tensor(0.05), torch.tensor(0.05), 1, 0.99, second_order,
+    )
+    grads = torch.autograd.grad(critic_loss + actor_loss, list(leaves.values()))
+    return dict(zip(leaves, grads))
+
+
+def test_second_order_meta_gradient_differs_from_first_order(model):
+    first, second = meta_gradient(model, False), meta_gradient(model, True)
+    assert all(torch.isfinite(g).all() and g.abs().sum() > 0 for g in first.values())
+    difference = sum(float((first[k] - second[k]).abs().sum()) for k in first)
+    assert difference > 1e-4, "second order gave the first-order gradient: the Hessian term is missing"
+    # and first order is deterministic given the noise, so the difference is not sampling noise
+    again = meta_gradient(model, False)
+    assert all(torch.equal(first[k], again[k]) for k in first)
+
+
+def test_learn_vecenv_tensorboard_save_load(tmp_path):
+    venv = make_vec_env(ENV_ID, n_envs=2, env_kwargs=ENV_KWARGS, seed=0)
+    model = tiny_model(
+        venv, warmup_steps=64, n_support=64, n_query=64, tensorboard_log=str(tmp_path), meta_batch_mode="loop",
+        second_order=True,
+    )
+    model.learn(400, log_interval=1, tb_log_name="MAMLSAC")
+    assert model.num_timesteps >= 400 and model.meta_iterations >= 2
+    assert set(model.query_buffers) <= set(range(len(model.train_tasks)))
+    assert all(len(s) == model.n_support for s in model.support_sets.values())
+    assert model.inner_lrs != (model.inner_actor_lr, model.inner_critic_lr), "inner step sizes were not meta-learned"
+    events = glob.glob(str(tmp_path / "MAMLSAC_1" / "events.*"))
+    assert events
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    tags = set(EventAccumulator(events[0]).Reload().Tags()["scalars"])
+    for prefix in ("pre", "post"):
+        for name in ("return", "success_rate", "collision_rate"):
+            assert f"meta/{prefix}_adaptation_{name}" in tags
+
+    model.save(tmp_path / "maml_sac.zip")
+    loaded = MAMLSAC.load(tmp_path / "maml_sac.zip", env=venv)
+    for name in ("meta_batch_size", "n_support", "inner_steps", "second_order", "meta_batch_mode", "meta_iterations"):
+        assert getattr(loaded, name) == getattr(model, name)
+    assert loaded.train_tasks == model.train_tasks
+    assert torch.equal(loaded.log_inner_lrs, model.log_inner_lrs)
+    for a, b in zip(model.policy.state_dict().values(), loaded.policy.state_dict().values()):
+        assert torch.equal(a, b)
+    saved_state = model.inner_lr_optimizer.state_dict()["state"][0]
+    loaded_state = loaded.inner_lr_optimizer.state_dict()["state"][0]
+    assert torch.equal(saved_state["exp_avg"], loaded_state["exp_avg"])
+    loaded.learn(100, reset_num_timesteps=False)  # training continues from the loaded state
+
+
+def snapshot(model: MAMLSAC) -> list[torch.Tensor]:
+    """Every tensor adapt() must leave alone: parameters, target net, α, inner step sizes, optimiser moments."""
+    tensors = [t.clone() for t in model.policy.state_dict().values()]
+    tensors += [model.log_ent_coef.detach().clone(), model.log_inner_lrs.detach().clone()]
+    for optimizer in (model.actor.optimizer, model.critic.optimizer, model.ent_coef_optimizer):
+        for state in optimizer.state_dict()["state"].values():
+            tensors += [v.clone() for v in state.values() if torch.is_tensor(v)]
+    return tensors
+
+
+def test_adapt_leaves_model_bit_identical_and_adapts(model):
+    model.learn(64)  # give the optimisers some state
+    env = gym.make(ENV_ID, **ENV_KWARGS)
+    task = TaskSampler("test", "hidden_targets", 1, 1).fixed_set(1)[0]
+    before, buffer_pos = snapshot(model), model.replay_buffer.pos
+    assert isinstance(model, Adaptable)
+    adapted = model.adapt(env, task=task, n_support=32, k=3, seed=0)
+    assert all(torch.equal(a, b) for a, b in zip(before, snapshot(model)))
+    assert model.replay_buffer.pos == buffer_pos
+    obs, _ = env.reset(seed=0)
+    assert not np.allclose(adapted.predict(obs)[0], model.predict(obs, deterministic=True)[0])
+    unadapted = model.adapt(env, task=task, n_support=8, k=0, seed=0)
+    assert np.allclose(unadapted.predict(obs)[0], model.predict(obs, deterministic=True)[0], atol=1e-6)
+    assert adapted.predict(np.stack([obs, obs]))[0].shape == (2, ACTION_DIM)
+
+
+def test_adapt_restores_model_when_it_raises(model, monkeypatch):
+    env = gym.make(ENV_ID, **ENV_KWARGS)
+    before = snapshot(model)
+    original = model.adapted_parameters
+
+    def corrupt_then_fail(supports, steps):
+        with torch.no_grad():
+            for parameter in model.policy.parameters():
+                parameter.add_(1.0)
+            model.log_ent_coef.add_(1.0)
+        original(supports, steps)
+        raise RuntimeError("injected failure")
+
+    monkeypatch.setattr(model, "adapted_parameters", corrupt_then_fail)
+    with pytest.raises(RuntimeError, match="injected"):
+        model.adapt(env, n_support=8, k=1, seed=0)
+    assert all(torch.equal(a, b) for a, b in zip(before, snapshot(model)))
+
+
+def test_bad_arguments_raise(model):
+    env = gym.make(ENV_ID, **ENV_KWARGS)
+    with pytest.raises(ValueError, match="meta_batch_mode"):
+        tiny_model(meta_batch_mode="parallel")
+    with pytest.raises(ValueError, match="k must be"):
+        model.adapt(env, k=-1)
+    with pytest.raises(ValueError, match="n_support"):
+        collect_support(model, env, None, 0, seed=0)
+    with pytest.raises(ValueError, match="observation shape"):
+        model.adapt(gym.make("VAFN/ThreeArmReachGoal-v0", **ENV_KWARGS), k=1)
+
+
+def test_nstep_plan_matches_definition():
+    rewards = np.array([1.0, 2.0, 3.0, 4.0, 5.0], dtype=np.float32)
+    ends = np.array([0, 1, 0, 0, 1], dtype=np.float32)
+    terminated = np.array([0, 1, 0, 0, 0], dtype=np.float32)
+    zeros = np.zeros(5, dtype=np.float32)
+    support = SupportSet(np.zeros((5, 1)), np.zeros((5, 1)), rewards, np.zeros((5, 1)), terminated, ends, zeros, zeros)
+    bootstrap = np.array([10.0, 20.0, 30.0, 40.0, 50.0], dtype=np.float32)
+    y = support.discounted_returns(0.5, n_step=2, bootstrap=bootstrap)
+    # t=0: 1 + .5*2, episode terminated at 1 -> no bootstrap; t=2: 3 + .5*4 + .25*V(s'_3); t=4: 5 + .5*V(s'_4) (cut)
+    assert np.allclose(y, [2.0, 2.0, 3 + 2 + 10, 4 + 2.5 + 12.5, 5 + 25])
+    assert np.allclose(support.discounted_returns(0.5, None), [2.0, 2.0, 3 + 2 + 1.25, 4 + 2.5, 5])
+
+
+def test_evaluate_adaptation_rows(model):
+    tasks = TaskSampler("test", "hidden_targets", 1, 1).fixed_set(2)
+    rows = evaluate_adaptation(model, ENV_ID, tasks, n_support=16, k_values=[0, 2], n_eval_episodes=1,
+                               env_kwargs=ENV_KWARGS)
+    assert [(r["task_index"], r["k"]) for r in rows] == [(0, 0), (0, 2), (1, 0), (1, 2)]
+    assert all(0.0 <= r["success_rate"] <= 1.0 and np.isfinite(r["return_mean"]) for r in rows)
