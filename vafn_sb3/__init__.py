@@ -1,1 +1,5 @@
 """vafn_sb3: MAML-SAC, the MARL baselines and the online adaptive controller, as Stable-Baselines3 algorithms."""
+
+from vafn_sb3.common.adaptation import Adaptable, AdaptedPolicy, collect_support, evaluate_adaptation
+from vafn_sb3.maml_sac import MAMLSAC
+from vafn_sb3.online import OnlineController
