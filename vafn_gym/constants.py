@@ -42,6 +42,9 @@ V_MAX: float = 1.0
 #: PyBullet physics step and the number of physics steps per env step.
 PHYSICS_DT: float = 1.0 / 240.0
 N_SUBSTEPS: int = 5
+#: Constraint-solver iterations per physics step. Bullet's default is 50; stiff position-controlled arms track as well
+#: with 10 (the scripted controller's success is unchanged) and the physics step costs about 1.4x less.
+SOLVER_ITERATIONS: int = 10
 #: Duration of one env (control) step in seconds.
 CONTROL_DT: float = PHYSICS_DT * N_SUBSTEPS
 

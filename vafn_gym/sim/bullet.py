@@ -10,7 +10,7 @@ import numpy as np
 import pybullet as p
 import pybullet_data
 
-from vafn_gym.constants import N_SUBSTEPS, PHYSICS_DT
+from vafn_gym.constants import N_SUBSTEPS, PHYSICS_DT, SOLVER_ITERATIONS
 
 
 def display_available() -> bool:
@@ -37,6 +37,7 @@ class BulletSim:
         p.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=self.client)
         p.setTimeStep(physics_dt, physicsClientId=self.client)
         p.setGravity(0, 0, -9.81, physicsClientId=self.client)
+        p.setPhysicsEngineParameter(numSolverIterations=SOLVER_ITERATIONS, physicsClientId=self.client)
         if gui:
             p.configureDebugVisualizer(p.COV_ENABLE_GUI, 0, physicsClientId=self.client)
 
