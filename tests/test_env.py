@@ -11,6 +11,7 @@ from stable_baselines3.common.env_checker import check_env as sb3_check_env
 from stable_baselines3.common.env_util import make_vec_env
 
 from vafn_gym import ENV_IDS, Instruction, ScriptedController
+from vafn_gym.envs.three_arm import PROXIMITY_PENALTY
 from vafn_gym.constants import (
     ACTION_DIM,
     OBS_DIM,
@@ -254,3 +255,18 @@ def test_stream_rejects_episode_kwargs():
     with pytest.raises(ValueError, match="queue"):
         gym.make("VAFN/ThreeArmStream-v0", instruction="1")
 
+
+
+def test_safety_margin_penalises_proximity_without_counting_a_collision():
+    plain = gym.make("VAFN/ThreeArmReach-v0", instruction="1")
+    margin = gym.make("VAFN/ThreeArmReach-v0", instruction="1", safety_margin=2.0)  # every pair is "too close"
+    plain.reset(seed=0)
+    margin.reset(seed=0)
+    action = np.zeros(ACTION_DIM)
+    _, r_plain, _, _, info_plain = plain.step(action)
+    _, r_margin, _, _, info_margin = margin.step(action)
+    assert np.isclose(r_plain - r_margin, PROXIMITY_PENALTY) and not info_margin["collision"] and not info_plain["collision"]
+    with pytest.raises(ValueError, match="safety_margin"):
+        gym.make("VAFN/ThreeArmReach-v0", safety_margin=-1)
+    plain.close()
+    margin.close()
