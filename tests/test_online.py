@@ -87,6 +87,7 @@ def test_adapting_controller_leaves_model_untouched_and_writes_outputs(tmp_path)
     for entry in controller.log:
         assert entry.adaptation_time_s > 0 and entry.service_latency_s >= entry.adaptation_time_s
         assert entry.latency_s >= entry.service_latency_s and entry.completion_step - entry.start_step == 20
+        assert 0 < entry.service_cpu_s <= entry.service_latency_s + 1e-3
     assert all(torch.equal(a, b) for a, b in zip(before, model.policy.state_dict().values()))
 
     rows = list(csv.DictReader(controller.write_csv(tmp_path / "log.csv").open()))

@@ -45,6 +45,8 @@ class InstructionLog:
     :param first_action_time: when the first adapted action was ready to be sent.
     :param latency_s: ``first_action_time - arrival_time`` (includes waiting behind earlier instructions).
     :param service_latency_s: ``first_action_time - dequeue_time`` (the controller's own reaction time).
+    :param service_cpu_s: CPU time of the controller thread from dequeue to the first action (``time.thread_time``):
+        the reaction time on one dedicated thread, free of other processes' contention.
     :param start_step: stream step at which execution started.
     :param completion_step: stream step at which it completed or timed out (-1 while running).
     :param outcome: "completed", "timeout" or "running".
@@ -62,6 +64,7 @@ class InstructionLog:
     first_action_time: float = float("nan")
     latency_s: float = float("nan")
     service_latency_s: float = float("nan")
+    service_cpu_s: float = float("nan")
     start_step: int = -1
     completion_step: int = -1
     outcome: str = "running"
@@ -114,6 +117,7 @@ class OnlineController:
         self._obs: np.ndarray | None = None
         self._policy: Any = None
         self._current: InstructionLog | None = None
+        self._dequeue_cpu = 0.0
 
     # --- Algorithm 1 ---
     def _begin(self, item: QueuedInstruction) -> None:
@@ -122,6 +126,7 @@ class OnlineController:
             sequence=item.sequence, instruction=self.stream.instruction.to_code(), arrival_time=item.arrival_time,
             dequeue_time=time.perf_counter(), start_step=self.stream.total_steps,
         )
+        self._dequeue_cpu = time.thread_time()
         self._policy = self.model
         if self.k > 0:
             start = time.perf_counter()
@@ -171,6 +176,7 @@ class OnlineController:
                 self._current.first_action_time = now
                 self._current.latency_s = now - self._current.arrival_time
                 self._current.service_latency_s = now - self._current.dequeue_time
+                self._current.service_cpu_s = time.thread_time() - self._dequeue_cpu
         self._obs, _, terminated, truncated, info = self.env.step(action)
         if self._current is not None:
             self._current.collisions += int(info["collision"])
