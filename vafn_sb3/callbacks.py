@@ -215,8 +215,8 @@ def summarise_adaptation(results: list[dict[str, Any]], k_values: Sequence[int])
             raise ValueError(f"evaluate_adaptation returned no rows for k={k}")
         summary.append({
             "k": int(k),
-            "return": float(np.mean([r["return"] for r in rows])),
-            "success": float(np.mean([r["success"] for r in rows])),
-            "collision": float(np.mean([r["collision"] for r in rows])),
+            "return": float(np.mean([r["return_mean"] for r in rows])),
+            "success": float(np.mean([r["success_rate"] for r in rows])),
+            "collision": float(np.mean([r["collision_rate"] for r in rows])),
         })
     return summary

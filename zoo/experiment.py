@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextvars
 import os
 import socket
+from pathlib import Path
 from typing import Any
 
 import optuna
@@ -49,6 +50,7 @@ def _pid_alive(pid: int) -> bool:
 def open_storage(storage: str) -> optuna.storages.BaseStorage:
     """A ``*.log`` path as a journal-file storage, anything else as an RDB URL (sqlite/postgresql/mysql)."""
     if storage.endswith(".log"):
+        Path(storage).parent.mkdir(parents=True, exist_ok=True)
         return optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(storage))
     return optuna.storages.RDBStorage(storage)
 
@@ -71,7 +73,7 @@ def recover_stale_trials(storage: str, study_name: str) -> list[int]:
         if owner_host != host or not pid.isdigit() or _pid_alive(int(pid)):
             continue
         study._storage.set_trial_state_values(trial._trial_id, TrialState.FAIL)
-        study.enqueue_trial(trial.params, user_attrs={"retry_of": trial.number}, skip_if_exists=True)
+        study.enqueue_trial(trial.params, user_attrs={"retry_of": trial.number})
         recovered.append(trial.number)
     return recovered
 

@@ -28,10 +28,11 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {"tanh": nn.Tanh, "relu": nn.ReLU}
 #: The class signature decides, so a renamed argument is simply not tuned instead of crashing every trial.
 EXTRA_SPACES: dict[str, dict[str, tuple]] = {
     "maml_sac": {
-        "inner_lr": ("float", 1e-4, 1e-1, True),
+        "inner_actor_lr": ("float", 1e-3, 1e-1, True),
+        "inner_critic_lr": ("float", 1e-3, 5e-2, True),
         "inner_steps": ("int", 1, 3, False),
-        "meta_batch_size": ("categorical", [2, 3, 5]),
-        "n_support": ("categorical", [64, 128, 256]),
+        "meta_batch_size": ("categorical", [3, 5]),
+        "n_support": ("categorical", [100, 200]),
     },
     "mtsac": {},
     "maac": {"attention_heads": ("categorical", [1, 2, 4])},

@@ -1,0 +1,156 @@
+"""Watch or record a trained vafn agent (or the scripted controller) on a VAFN env; rgb_array frames -> GIF / MP4.
+
+    python zoo/enjoy.py --algo sac --env VAFN/ThreeArmReach-v0 -f logs --record results/sac.gif
+    python zoo/enjoy.py --algo sac --env VAFN/ThreeArmReach-v0 -f logs --render-mode human     # GUI window
+    python zoo/enjoy.py --scripted --env VAFN/ThreeArmReach-v0 --instruction 2,3,1,3 --record demo.mp4
+
+The model is found like ``python -m rl_zoo3.enjoy`` finds it (``-f/--exp-id/--load-best``); the env kwargs and
+VecNormalize statistics saved with the run are reused. Prints return, success and collision per episode.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+if str(REPO_ROOT) not in sys.path:
+    sys.path.insert(0, str(REPO_ROOT))
+
+import gymnasium as gym  # noqa: E402
+import numpy as np  # noqa: E402
+import yaml  # noqa: E402
+from huggingface_sb3 import EnvironmentName  # noqa: E402
+from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+import vafn_gym  # noqa: E402
+from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
+
+VIDEO_SUFFIXES = (".gif", ".mp4")
+
+
+def load_run(algo: str, env_id: str, folder: str, exp_id: int, load_best: bool) -> tuple[Any, dict, str | None]:
+    """(model, env_kwargs, vecnormalize path or None) of a zoo run ``<folder>/<algo>/<EnvName>_<exp_id>``."""
+    from rl_zoo3.utils import get_model_path
+
+    algo_class = require_algorithm(algo)
+    env_name = EnvironmentName(env_id)
+    _, model_path, log_path = get_model_path(exp_id, folder, algo, env_name, load_best)
+    config_path = Path(log_path) / str(env_name) / "config.yml"
+    env_kwargs: dict = {}
+    if config_path.is_file():
+        config = yaml.load(config_path.read_text(), Loader=yaml.UnsafeLoader) or {}
+        env_kwargs = dict(config.get("env_kwargs") or {})
+    stats = Path(log_path) / str(env_name) / "vecnormalize.pkl"
+    model = algo_class.load(model_path, device="cpu")
+    return model, env_kwargs, str(stats) if stats.is_file() else None
+
+
+def write_video(frames: list[np.ndarray], path: Path, fps: int) -> Path:
+    """Save RGB frames as a GIF or an MP4 (by suffix)."""
+    import imageio.v2 as imageio
+
+    if path.suffix not in VIDEO_SUFFIXES:
+        raise ValueError(f"--record must end in one of {VIDEO_SUFFIXES}, got {path}")
+    if not frames:
+        raise ValueError("no frames were rendered")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix == ".gif":
+        imageio.mimsave(path, frames, duration=1000.0 / fps, loop=0)
+    else:
+        imageio.mimsave(path, frames, fps=fps, macro_block_size=1)
+    return path
+
+
+def run(
+    policy: Any,
+    env_id: str,
+    env_kwargs: dict,
+    n_steps: int,
+    render_mode: str | None,
+    record: Path | None,
+    stats_path: str | None = None,
+    deterministic: bool = True,
+    seed: int = 0,
+    frame_skip: int = 1,
+) -> list[dict[str, float]]:
+    """Roll ``policy`` for ``n_steps`` env steps; returns one ``{return, success, collision, length}`` per episode."""
+    mode = "rgb_array" if record is not None else render_mode
+    venv = DummyVecEnv([lambda: gym.make(env_id, render_mode=mode, **env_kwargs)])
+    if stats_path is not None:
+        venv = VecNormalize.load(stats_path, venv)
+        venv.training, venv.norm_reward = False, False
+    venv.seed(seed)
+    base = venv.envs[0] if isinstance(venv, DummyVecEnv) else venv.venv.envs[0]  # type: ignore[attr-defined]
+    fps = int(base.metadata.get("render_fps", 30)) // max(frame_skip, 1)
+    obs = venv.reset()
+    frames: list[np.ndarray] = []
+    episodes: list[dict[str, float]] = []
+    total, length = 0.0, 0
+    try:
+        for step in tqdm(range(n_steps), desc="rollout", disable=n_steps < 500):
+            if record is not None and step % frame_skip == 0:
+                frames.append(base.render())
+            action, _ = policy.predict(obs, deterministic=deterministic)
+            obs, reward, done, info = venv.step(action)
+            total += float(reward[0])
+            length += 1
+            if done[0]:
+                episode = {"return": total, "success": float(info[0].get("is_success", False)),
+                           "collision": float(info[0].get("collided", False)), "length": float(length)}
+                episodes.append(episode)
+                print(f"episode {len(episodes)}: return {total:.2f}, success {episode['success']:.0f}, "
+                      f"collision {episode['collision']:.0f}, length {length}")
+                total, length = 0.0, 0
+                if hasattr(policy, "reset"):
+                    policy.reset()
+    finally:
+        venv.close()
+    if record is not None:
+        print(f"wrote {write_video(frames, record, fps)} ({len(frames)} frames)")
+    return episodes
+
+
+def main(argv: list[str] | None = None) -> list[dict[str, float]]:
+    """Command-line entry point; returns the per-episode results."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--algo", default="sac", help="zoo algorithm key of the trained agent")
+    parser.add_argument("--env", default="VAFN/ThreeArmReach-v0", choices=vafn_gym.ENV_IDS)
+    parser.add_argument("-f", "--folder", default="logs", help="zoo log folder")
+    parser.add_argument("--exp-id", type=int, default=0, help="run number (0: latest)")
+    parser.add_argument("--load-best", action="store_true", help="load best_model.zip instead of the final model")
+    parser.add_argument("--scripted", action="store_true", help="run vafn_gym.ScriptedController (no trained agent)")
+    parser.add_argument("-n", "--n-timesteps", type=int, default=1000)
+    parser.add_argument("--instruction", default=None, help="fixed instruction, e.g. 2,3,1,3 (default: sampled)")
+    parser.add_argument("--env-kwargs", nargs="*", default=[], help="extra env kwargs as key:value (values eval'd)")
+    parser.add_argument("--render-mode", choices=["human", "rgb_array"], default=None, help="human opens a GUI window")
+    parser.add_argument("--record", type=Path, default=None, help="write the frames to this .gif or .mp4")
+    parser.add_argument("--frame-skip", type=int, default=2, help="record every N-th frame")
+    parser.add_argument("--stochastic", action="store_true", help="sample actions instead of the deterministic policy")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    if args.n_timesteps < 1 or args.frame_skip < 1:
+        parser.error("-n and --frame-skip must be >= 1")
+    if args.render_mode == "human" and not os.environ.get("DISPLAY"):
+        parser.error("--render-mode human needs a display; use --record out.gif on a headless machine")
+    register_algorithms()
+    stats = None
+    if args.scripted:
+        policy, env_kwargs = vafn_gym.ScriptedController(), {}
+    else:
+        policy, env_kwargs, stats = load_run(args.algo, args.env, args.folder, args.exp_id, args.load_best)
+    for item in args.env_kwargs:
+        key, _, value = item.partition(":")
+        env_kwargs[key] = eval(value)  # same convention as the zoo's --env-kwargs
+    if args.instruction is not None:
+        env_kwargs["instruction"] = args.instruction
+    return run(policy, args.env, env_kwargs, args.n_timesteps, args.render_mode, args.record, stats,
+               not args.stochastic, args.seed, args.frame_skip)
+
+
+if __name__ == "__main__":
+    main()
