@@ -13,7 +13,7 @@ from rl_zoo3.hyperparams_opt import HYPERPARAMS_CONVERTER, HYPERPARAMS_SAMPLER
 from rl_zoo3.utils import ALGOS
 from stable_baselines3 import PPO, SAC, TD3
 
-from zoo.tuning import Sampler, convert_params, make_ppo_sampler, make_sac_sampler, make_td3_sampler
+from zoo.tuning import Sampler, make_converter, make_off_policy_sampler, make_ppo_sampler
 
 
 @dataclass(frozen=True)
@@ -36,7 +36,7 @@ VAFN_ALGOS: dict[str, AlgoSpec] = {
         AlgoSpec("maddpg", "MADDPG", TD3),
     )
 }
-SAMPLER_FACTORIES = {SAC: make_sac_sampler, PPO: make_ppo_sampler, TD3: make_td3_sampler}
+SAMPLER_FACTORIES = {SAC: make_off_policy_sampler, PPO: make_ppo_sampler, TD3: make_off_policy_sampler}
 
 #: algo key -> why it could not be registered (filled by :func:`register_algorithms`).
 UNAVAILABLE: dict[str, str] = {}
@@ -58,12 +58,12 @@ def _load_class(spec: AlgoSpec) -> type:
 def _register(key: str, algo_class: type, sampler: Sampler) -> None:
     ALGOS[key] = algo_class
     HYPERPARAMS_SAMPLER[key] = sampler
-    HYPERPARAMS_CONVERTER[key] = convert_params
+    HYPERPARAMS_CONVERTER[key] = make_converter(key)
 
 
 def register_algorithms() -> list[str]:
     """Register SB3's SAC and every importable vafn algorithm; returns the registered keys (missing ones: UNAVAILABLE)."""
-    _register("sac", SAC, make_sac_sampler("sac", SAC))
+    _register("sac", SAC, make_off_policy_sampler("sac", SAC))
     registered = ["sac"]
     UNAVAILABLE.clear()
     for key, spec in VAFN_ALGOS.items():

@@ -13,15 +13,20 @@ from __future__ import annotations
 import inspect
 from typing import Any, Callable
 
-import numpy as np
 import optuna
-from stable_baselines3.common.noise import NormalActionNoise
 from torch import nn
 
 Sampler = Callable[[optuna.Trial, int, int, dict], dict[str, Any]]
 
 #: Named network sizes a trial can pick (shared by actor and critic).
-NET_ARCHS: dict[str, list[int]] = {"small": [64, 64], "medium": [256, 256], "large": [400, 300]}
+NET_ARCHS: dict[str, Any] = {"small": [64, 64], "medium": [256, 256], "large": [400, 300]}
+#: MAAC's attention critic takes a single hidden width (``qf=[w]``), so it has its own table.
+MAAC_NET_ARCHS: dict[str, Any] = {
+    "small": {"pi": [64, 64], "qf": [64]},
+    "medium": {"pi": [128, 128], "qf": [128]},
+    "large": {"pi": [256, 256], "qf": [256]},
+}
+NET_ARCHS_BY_ALGO: dict[str, dict[str, Any]] = {"maac": MAAC_NET_ARCHS}
 ACTIVATIONS: dict[str, type[nn.Module]] = {"tanh": nn.Tanh, "relu": nn.ReLU}
 
 #: Algorithm-specific constructor arguments tuned when the class accepts them: name -> (kind, low/choices, high, log).
@@ -34,10 +39,8 @@ EXTRA_SPACES: dict[str, dict[str, tuple]] = {
         "meta_batch_size": ("categorical", [3, 5]),
         "n_support": ("categorical", [100, 200]),
     },
-    "mtsac": {},
-    "maac": {"attention_heads": ("categorical", [1, 2, 4])},
-    "mappo": {},
-    "maddpg": {},
+    "maddpg": {"exploration_std": ("float", 0.05, 0.4, False)},
+    "maac": {"attention_reg": ("float", 1e-4, 1e-2, True)},
 }
 
 
@@ -63,20 +66,21 @@ def _suggest_extras(trial: optuna.Trial, algo: str, algo_class: type | None) -> 
     return params
 
 
-def convert_params(params: dict[str, Any]) -> dict[str, Any]:
-    """Stored trial params -> constructor hyperparams (``one_minus_*`` -> value, ``net_arch`` name -> policy_kwargs)."""
+def convert_params(params: dict[str, Any], net_archs: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Stored trial params -> constructor hyperparams (``one_minus_*`` -> value, ``net_arch`` name -> policy_kwargs).
+
+    :param params: the trial's parameters as stored by Optuna.
+    :param net_archs: the algorithm's table of named network sizes (default :data:`NET_ARCHS`).
+    """
     hyperparams = dict(params)
     for name in ("gamma", "gae_lambda"):
         if f"one_minus_{name}" in hyperparams:
             hyperparams[name] = 1.0 - hyperparams.pop(f"one_minus_{name}")
     policy_kwargs: dict[str, Any] = {}
     if "net_arch" in hyperparams:
-        policy_kwargs["net_arch"] = NET_ARCHS[hyperparams.pop("net_arch")]
+        policy_kwargs["net_arch"] = (net_archs or NET_ARCHS)[hyperparams.pop("net_arch")]
     if "activation_fn" in hyperparams:
         policy_kwargs["activation_fn"] = ACTIVATIONS[hyperparams.pop("activation_fn")]
-    if "noise_std" in hyperparams:
-        # rl_zoo3 builds the NormalActionNoise from these two keys once it knows the action count.
-        hyperparams["noise_type"] = "normal"
     if policy_kwargs:
         hyperparams["policy_kwargs"] = policy_kwargs
     return hyperparams
@@ -92,35 +96,31 @@ def _suggest_off_policy(trial: optuna.Trial) -> dict[str, Any]:
     }
 
 
-def make_sac_sampler(algo: str, algo_class: type | None) -> Sampler:
-    """Sampler for SAC and its subclasses (sac, maml_sac, mtsac, maac): common SAC space + the algo's own extras."""
+def make_converter(algo: str) -> Callable[[dict[str, Any]], dict[str, Any]]:
+    """The ``--trial-id`` converter of ``algo`` (its own network-size table)."""
+
+    def convert(params: dict[str, Any]) -> dict[str, Any]:
+        return convert_params(params, NET_ARCHS_BY_ALGO.get(algo))
+
+    return convert
+
+
+def make_off_policy_sampler(algo: str, algo_class: type | None) -> Sampler:
+    """Sampler for SAC and TD3 subclasses (sac, maml_sac, mtsac, maac, maddpg): common space + the algo's extras."""
+    convert = make_converter(algo)
 
     def sample(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
         params = _suggest_off_policy(trial)
         params["learning_starts"] = trial.suggest_categorical("learning_starts", [100, 500, 1000])
         params.update(_suggest_extras(trial, algo, algo_class))
-        return convert_params(params)
-
-    return sample
-
-
-def make_td3_sampler(algo: str, algo_class: type | None) -> Sampler:
-    """Sampler for TD3 subclasses (maddpg): SAC-like space plus Gaussian exploration noise."""
-
-    def sample(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
-        params = _suggest_off_policy(trial)
-        noise_std = trial.suggest_float("noise_std", 0.05, 0.5)
-        params.update(_suggest_extras(trial, algo, algo_class))
-        hyperparams = convert_params(params)
-        # Inside a trial the zoo passes hyperparams straight to the constructor, so the noise object is built here.
-        hyperparams["action_noise"] = NormalActionNoise(np.zeros(n_actions), noise_std * np.ones(n_actions))
-        return hyperparams
+        return convert(params)
 
     return sample
 
 
 def make_ppo_sampler(algo: str, algo_class: type | None) -> Sampler:
     """Sampler for PPO subclasses (mappo)."""
+    convert = make_converter(algo)
 
     def sample(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
         params = {
@@ -136,6 +136,6 @@ def make_ppo_sampler(algo: str, algo_class: type | None) -> Sampler:
             "activation_fn": trial.suggest_categorical("activation_fn", ["tanh", "relu"]),
         }
         params.update(_suggest_extras(trial, algo, algo_class))
-        return convert_params(params)
+        return convert(params)
 
     return sample
