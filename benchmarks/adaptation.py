@@ -76,6 +76,7 @@ def main() -> None:
     parser.add_argument("--env", default="VAFN/ThreeArmReachHidden-v0")
     parser.add_argument("--max-length", type=int, default=2, help="longest instruction (training and test)")
     parser.add_argument("--model", type=Path, help="evaluate this saved MAMLSAC instead of training one")
+    parser.add_argument("--resume", type=Path, help="continue training this saved MAMLSAC for --timesteps more steps")
     parser.add_argument("--timesteps", type=int, default=300_000, help="training env steps (warm-up included)")
     parser.add_argument("--warmup-steps", type=int, default=50_000, help="plain multi-task SAC steps first")
     parser.add_argument("--net-arch", type=int, nargs="+", default=[64, 64])
@@ -99,13 +100,16 @@ def main() -> None:
         train_seconds = None
     else:
         venv = make_vec_env(args.env, n_envs=args.n_envs, env_kwargs=env_kwargs, seed=args.seed)
-        model = MAMLSAC(
-            "MlpPolicy", venv, n_support=args.n_support, inner_steps=args.inner_steps, outer_steps=args.outer_steps,
-            second_order=args.second_order, warmup_steps=args.warmup_steps, policy_kwargs={"net_arch": args.net_arch},
-            tensorboard_log=str(args.out / "tb"), seed=args.seed, verbose=0,
-        )
+        if args.resume is not None:
+            model = MAMLSAC.load(args.resume, env=venv, tensorboard_log=str(args.out / "tb"))
+        else:
+            model = MAMLSAC(
+                "MlpPolicy", venv, n_support=args.n_support, inner_steps=args.inner_steps,
+                outer_steps=args.outer_steps, second_order=args.second_order, warmup_steps=args.warmup_steps,
+                policy_kwargs={"net_arch": args.net_arch}, tensorboard_log=str(args.out / "tb"), seed=args.seed,
+            )
         start = time.perf_counter()
-        model.learn(args.timesteps, log_interval=5)
+        model.learn(args.timesteps, log_interval=5, reset_num_timesteps=args.resume is None)
         train_seconds = time.perf_counter() - start
         model.save(args.out / "model.zip")
 

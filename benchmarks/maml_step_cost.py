@@ -1,6 +1,6 @@
 """Cost of one MAML-SAC outer (meta) step against one plain SB3 SAC gradient step, looped vs vmapped meta-batch.
 
-Both use SB3's default networks (256x256) on the 15-D/9-D spaces and the same batch size; buffers hold random data
+Times are the best of ``--repeats`` calls in thread CPU time. Both use SB3's default networks (256x256) on the 15-D/9-D spaces and the same batch size; buffers hold random data
 (the cost does not depend on the values). Prints a table; never asserts a speed.
 
 Usage::
@@ -53,13 +53,16 @@ def random_support(n: int, obs_dim: int, act_dim: int, rng: np.random.Generator)
 
 
 def time_call(fn, repeats: int) -> float:
-    """Best wall time of ``repeats`` calls of ``fn`` (after one warm-up call)."""
+    """Best thread CPU time of ``repeats`` calls of ``fn`` (after one warm-up call).
+
+    CPU time of the calling thread, not wall time: on a shared machine wall time mostly measures the other processes.
+    """
     fn()
     best = float("inf")
     for _ in range(repeats):
-        start = time.perf_counter()
+        start = time.thread_time()
         fn()
-        best = min(best, time.perf_counter() - start)
+        best = min(best, time.thread_time() - start)
     return best
 
 

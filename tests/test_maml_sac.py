@@ -113,7 +113,7 @@ def test_learn_vecenv_tensorboard_save_load(tmp_path):
         venv, warmup_steps=64, n_support=64, n_query=64, tensorboard_log=str(tmp_path), meta_batch_mode="loop",
         second_order=True,
     )
-    model.learn(400, log_interval=1, tb_log_name="MAMLSAC")
+    model.learn(400, log_interval=1, tb_log_name="MAMLSAC", progress_bar=True)
     assert model.num_timesteps >= 400 and model.meta_iterations >= 2
     assert set(model.query_buffers) <= set(range(len(model.train_tasks)))
     assert all(len(s) == model.n_support for s in model.support_sets.values())
