@@ -1,0 +1,409 @@
+"""Tests of the multimedia instruction generator (vafn_gym.multimedia), using the packaged checkpoint."""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("librosa")
+pytest.importorskip("cv2")
+soundfile = pytest.importorskip("soundfile")
+
+from vafn_gym.instructions import Instruction  # noqa: E402
+from vafn_gym.multimedia.constants import IMAGE_HEIGHT, LATENT_DIM, N_MELS, VOCAB_SIZE  # noqa: E402
+
+torch.set_num_threads(1)
+HAVE_ESPEAK = True
+try:
+    import espeakng_loader  # noqa: F401
+except ImportError:  # pragma: no cover
+    HAVE_ESPEAK = False
+needs_espeak = pytest.mark.skipif(not HAVE_ESPEAK, reason="speech synthesis needs espeakng-loader ([media] extra)")
+
+#: Fresh held-out items per difficulty for the accuracy test (never used in training: other seed, other split).
+ACCURACY_ITEMS = 30
+TEST_SEED = 4242
+
+
+@pytest.fixture(scope="module")
+def generator():
+    from vafn_gym.multimedia import InstructionGenerator
+
+    return InstructionGenerator.load()
+
+
+@pytest.fixture(scope="module")
+def heldout():
+    """Held-out items per difficulty (fresh processes: bit-identical audio on every run)."""
+    from vafn_gym.multimedia.dataset import generate_raw
+
+    if not HAVE_ESPEAK:
+        pytest.skip("needs espeakng-loader")
+    return {d: generate_raw(TEST_SEED, "heldout", ACCURACY_ITEMS, d) for d in ("easy", "medium", "hard")}
+
+
+@pytest.fixture(scope="module")
+def sample(heldout):
+    """One medium held-out item: (arms, waveform, sample rate, image)."""
+    items = heldout["medium"]
+    return items.arms[0], items.waveforms[0], items.sample_rate, items.images[0]
+
+
+# --- import weight -----------------------------------------------------------------------------------------------
+def test_import_is_light():
+    import subprocess
+    import sys
+
+    code = "import sys, vafn_gym.multimedia; print(any(m in sys.modules for m in ('librosa', 'cv2', 'espeakng_loader')))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "False"
+
+
+# --- data generation ---------------------------------------------------------------------------------------------
+def test_item_specs_and_images_are_deterministic():
+    from vafn_gym.multimedia.dataset import item_spec, render_item
+    from vafn_gym.multimedia.strips import render_strip
+
+    assert item_spec(3, "train", 7) == item_spec(3, "train", 7)
+    assert item_spec(3, "train", 7) != item_spec(4, "train", 7)
+    for arms in ([], [1], [2, 3, 1, 3, 2, 1, 1, 2, 3, 3]):
+        a = render_strip(arms, np.random.default_rng([5, len(arms)]))
+        b = render_strip(arms, np.random.default_rng([5, len(arms)]))
+        assert a.dtype == np.uint8 and a.ndim == 2 and np.array_equal(a, b)
+    spec = item_spec(1, "heldout", 0, "hard")
+    assert 7 <= len(spec.arms) <= 10 and spec.heldout
+
+
+def test_heldout_split_uses_unseen_voices_and_glyphs():
+    from vafn_gym.multimedia.dataset import item_spec
+    from vafn_gym.multimedia.speech import HELDOUT_VARIANTS, HELDOUT_VOICES, TRAIN_VARIANTS, TRAIN_VOICES
+    from vafn_gym.multimedia.strips import HELDOUT_FONTS, TRAIN_FONTS, handwritten_pool
+
+    assert not set(HELDOUT_VOICES) & set(TRAIN_VOICES) and not set(HELDOUT_VARIANTS) & set(TRAIN_VARIANTS)
+    assert not set(HELDOUT_FONTS) & set(TRAIN_FONTS)
+    train, test = handwritten_pool(False), handwritten_pool(True)
+    for arm in (1, 2, 3):
+        seen = {g.tobytes() for g in train[arm]}
+        assert len(test[arm]) > 40 and all(g.tobytes() not in seen for g in test[arm])
+    voices = {item_spec(0, "train", i).voice.name for i in range(200)}
+    assert voices <= set(TRAIN_VOICES)
+    assert {item_spec(0, "heldout", i).voice.name for i in range(200)} <= set(HELDOUT_VOICES)
+
+
+@needs_espeak
+def test_audio_generation_is_reproducible_in_fresh_processes():
+    from vafn_gym.multimedia.dataset import generate_raw
+
+    first = generate_raw(7, "train", 4)
+    second = generate_raw(7, "train", 4)
+    assert first.arms == second.arms
+    assert all(np.array_equal(a, b) for a, b in zip(first.waveforms, second.waveforms))
+    assert all(np.array_equal(a, b) for a, b in zip(first.images, second.images))
+    assert all(len(w) > 0.2 * first.sample_rate for w in first.waveforms)
+
+
+# --- features ----------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("rate", [16_000, 22_050, 44_100])
+def test_log_mel_shape_and_frame_rate(rate):
+    from vafn_gym.multimedia.features import frame_params, log_mel, num_frames
+
+    seconds = 1.3
+    wave = np.random.default_rng(0).normal(0, 0.1, int(seconds * rate)).astype(np.float32)
+    features = log_mel(wave, rate)
+    assert features.shape == (1, N_MELS, num_frames(len(wave), rate))
+    assert abs(features.shape[-1] - seconds * 100) <= 2  # 10 ms hop whatever the rate
+    assert frame_params(rate)[0] >= frame_params(rate)[1]
+    assert torch.isfinite(features).all()
+
+
+def test_canonical_strip_normalises_polarity_and_size():
+    from vafn_gym.multimedia.images import canonical_strip
+    from vafn_gym.multimedia.strips import render_strip
+
+    image = render_strip([1, 2, 3], np.random.default_rng(1))
+    light_on_dark = canonical_strip(image)
+    dark_on_light = canonical_strip(255 - image)
+    assert light_on_dark.shape[0] == IMAGE_HEIGHT and light_on_dark.dtype == np.float32
+    assert light_on_dark.shape == dark_on_light.shape
+    assert np.abs(light_on_dark - dark_on_light).mean() < 0.05
+    bgr = np.repeat(image[:, :, None], 3, axis=2)
+    assert np.allclose(canonical_strip(bgr), light_on_dark, atol=1e-3)
+    big = canonical_strip(np.kron(image, np.ones((3, 3), np.uint8)))
+    assert big.shape[0] == IMAGE_HEIGHT and abs(big.shape[1] - light_on_dark.shape[1]) <= 3
+
+
+# --- model and decoding ------------------------------------------------------------------------------------------
+def test_model_forward_shapes():
+    from vafn_gym.multimedia.model import InstructionModel
+
+    model = InstructionModel().eval()
+    with torch.inference_mode():
+        phi_a, len_a = model.encode("audio", torch.randn(2, N_MELS, 101), torch.tensor([101, 60]))
+        phi_v, len_v = model.encode("image", torch.rand(2, 1, IMAGE_HEIGHT, 96), torch.tensor([96, 40]))
+        logits = model.decode(phi_a)
+    assert phi_a.shape == (2, 26, LATENT_DIM) and len_a.tolist() == [26, 15]
+    assert phi_v.shape == (2, 24, LATENT_DIM) and len_v.tolist() == [24, 10]
+    assert logits.shape == (2, 26, VOCAB_SIZE)
+    with pytest.raises(ValueError, match="modality"):
+        model.encode("smell", phi_a, len_a)
+
+
+def _logits(path):
+    logits = torch.full((len(path), VOCAB_SIZE), -5.0)
+    logits[torch.arange(len(path)), torch.tensor(path)] = 5.0
+    return logits
+
+
+@pytest.mark.parametrize("path, arms", [
+    ([0, 0, 0, 0], []),
+    ([0, 1, 1, 0, 1, 2, 2, 0], [1, 1, 2]),
+    ([3, 0, 3, 3, 0, 3], [3, 3, 3]),
+    ([k % 3 + 1 if i % 2 else 0 for i, k in enumerate(range(21))], [k % 3 + 1 for k in range(1, 21, 2)]),
+])
+def test_greedy_decode_variable_lengths(path, arms):
+    from vafn_gym.multimedia.decoding import greedy_decode
+
+    decoded = greedy_decode(torch.randn(len(path), LATENT_DIM), _logits(path))
+    assert decoded.arms == arms
+    assert len(decoded.confidences) == len(arms) == decoded.embeddings.shape[0]
+    assert all(0.9 < c <= 1.0 for c in decoded.confidences)
+
+
+def test_fusion_prefers_the_confident_modality():
+    from vafn_gym.multimedia.decoding import fuse, greedy_decode
+
+    sure = greedy_decode(torch.randn(8, LATENT_DIM), _logits([0, 2, 0, 3, 0, 1, 0, 0]))
+    unsure_logits = _logits([0, 2, 0, 0, 0, 1, 0, 0]) * 0.1  # misses a token, and is unsure everywhere
+    unsure = greedy_decode(torch.randn(8, LATENT_DIM), unsure_logits)
+    fused = fuse({"audio": sure, "image": unsure}, lambda phi: torch.zeros(len(phi), VOCAB_SIZE))
+    assert fused.method == "rescored" and fused.arms == [2, 3, 1]
+
+
+# --- the packaged generator ----------------------------------------------------------------------------------------
+def test_packaged_checkpoint_is_small_and_documented():
+    from vafn_gym.multimedia.generator import DEFAULT_CHECKPOINT
+
+    assert DEFAULT_CHECKPOINT.stat().st_size < 4 * 2**20
+    metadata = json.loads(DEFAULT_CHECKPOINT.with_suffix(".json").read_text())
+    assert metadata["command"].startswith("python -m vafn_gym.multimedia.train")
+    assert metadata["validation"], "the training run must record validation accuracy"
+
+
+@needs_espeak
+def test_every_modality_combination(generator, sample):
+    arms, wave, rate, image = sample
+    code = ",".join(map(str, arms))
+    for kwargs in ({"audio": (wave, rate)}, {"image": image}, {"code": code}, {"audio": (wave, rate), "image": image},
+                   {"audio": (wave, rate), "code": code}, {"image": image, "code": code},
+                   {"audio": (wave, rate), "image": image, "code": code}):
+        result = generator.transcribe(**kwargs)
+        assert isinstance(result.instruction, Instruction)
+        assert len(result.confidences) == len(result.instruction)
+        assert set(result.modalities) >= set(kwargs)
+        assert result.arms == tuple(arms), kwargs
+    with pytest.raises(ValueError, match="at least one"):
+        generator.transcribe()
+
+
+@needs_espeak
+def test_audio_of_any_sample_rate_and_files(generator, sample, tmp_path):
+    import soxr
+
+    arms, wave, rate, image = sample
+    for target in (16_000, 44_100):
+        resampled = soxr.resample(wave, rate, target)
+        assert generator.transcribe(audio=resampled, sample_rate=target).arms == tuple(arms)
+    path = tmp_path / "cmd.flac"
+    soundfile.write(path, wave, rate)
+    assert generator.transcribe(audio=str(path)).arms == tuple(arms)
+    stereo = np.stack([wave, wave], axis=1)
+    assert generator.transcribe(audio=(stereo, rate)).arms == tuple(arms)
+    int16 = np.clip(wave * 32767, -32768, 32767).astype(np.int16)
+    assert generator.transcribe(audio=(int16, rate)).arms == tuple(arms)
+
+
+@needs_espeak
+def test_accuracy_on_fresh_heldout_items_beats_the_paper(generator, heldout):
+    """Deterministic fresh held-out sample (unseen voices, handwriting, fonts); fails if the model regresses."""
+    from vafn_gym.multimedia.evaluation import PAPER_ACCURACY, run_cell
+
+    for k, difficulty in enumerate(("easy", "medium", "hard")):
+        items = heldout[difficulty]
+        for row in ("Audio", "Audio (noise)", "Audio-Visual", "Audio-Visual (noise)"):
+            accuracy = 100 * run_cell(generator.transcribe, items, TEST_SEED, row).correct.mean()
+            assert accuracy >= PAPER_ACCURACY[row][k], (row, difficulty, accuracy)
+        visual = 100 * run_cell(generator.transcribe, items, TEST_SEED, "Visual").correct.mean()
+        assert visual >= PAPER_ACCURACY["Audio-Visual"][k], (difficulty, visual)
+
+
+# --- CLI ---------------------------------------------------------------------------------------------------------
+@needs_espeak
+def test_cli_on_generated_wav_and_png(sample, tmp_path, capsys):
+    import cv2
+
+    from vafn_gym.multimedia.cli import main
+
+    arms, wave, rate, image = sample
+    wav, png = tmp_path / "cmd.wav", tmp_path / "card.png"
+    soundfile.write(wav, wave, rate)
+    cv2.imwrite(str(png), image)
+    assert main(["--audio", str(wav), "--image", str(png), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["instruction"] == list(arms) and out["modalities"] == ["audio", "image"]
+    assert len(out["confidences"]) == len(arms) and out["latency_ms"] > 0
+    assert main(["--audio", str(wav)]) == 0
+    text = capsys.readouterr().out
+    assert f"instruction: [{','.join(map(str, arms))}]" in text and "latency:" in text
+    bad = tmp_path / "bad.wav"
+    bad.write_bytes(b"RIFF\x00\x00")
+    assert main(["--audio", str(bad)]) == 2
+    assert "corrupt" in capsys.readouterr().err
+
+
+# --- bad input ---------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("waveform, rate, message", [
+    (np.zeros(0, np.float32), 22_050, "empty"),
+    (np.zeros(22_050, np.float32), 22_050, "silent"),
+    (np.full(22_050, 1e-5, np.float32), 22_050, "silent"),
+    (np.r_[np.random.default_rng(0).normal(0, 0.1, 1000), np.nan].astype(np.float32), 22_050, "NaN"),
+    (np.random.default_rng(0).normal(0, 0.1, 8000).astype(np.float32), 8_000, "sample rate"),
+    (np.random.default_rng(0).normal(0, 0.1, 8000).astype(np.float32), 0, "sample rate"),
+    (np.random.default_rng(0).normal(0, 0.1, 8000).astype(np.float32), 22050.5, "sample rate"),
+    (np.random.default_rng(0).normal(0, 0.1, 8000).astype(np.float32), None, "sample_rate"),
+    (np.ones((2, 2, 2), np.float32), 22_050, "shape"),
+    (np.array(["a"] * 100), 22_050, "dtype"),
+])
+def test_bad_audio_raises_a_clear_error(generator, waveform, rate, message):
+    with pytest.raises(ValueError, match=message):
+        generator.transcribe(audio=waveform, sample_rate=rate)
+
+
+def test_corrupt_truncated_and_missing_audio_files(generator, tmp_path):
+    wave = np.random.default_rng(0).normal(0, 0.2, 22_050).astype(np.float32)
+    good = tmp_path / "good.wav"
+    soundfile.write(good, wave, 22_050)
+    truncated = tmp_path / "truncated.wav"
+    truncated.write_bytes(good.read_bytes()[:40])
+    garbage = tmp_path / "garbage.wav"
+    garbage.write_bytes(b"this is not audio at all" * 10)
+    for path, message in ((truncated, "corrupt"), (garbage, "corrupt"), (tmp_path / "missing.wav", "does not exist")):
+        with pytest.raises(ValueError, match=message):
+            generator.transcribe(audio=str(path))
+
+
+@needs_espeak
+def test_clipped_audio_is_flagged_low_confidence(generator, sample):
+    arms, wave, rate, image = sample
+    clipped = np.clip(wave * 50, -1, 1)
+    result = generator.transcribe(audio=(clipped, rate))
+    assert result.low_confidence and any("clipped" in w for w in result.warnings)
+
+
+def test_noise_only_audio_is_not_read_with_high_confidence(generator):
+    rng = np.random.default_rng(3)
+    result = generator.transcribe(audio=rng.normal(0, 0.3, 22_050 * 2).astype(np.float32), sample_rate=22_050)
+    assert len(result.instruction) == 0 or result.low_confidence
+
+
+@pytest.mark.parametrize("image, message", [
+    (np.zeros((0, 10), np.uint8), "empty"),
+    (np.zeros((32, 0, 3), np.uint8), "empty"),
+    (np.zeros((40, 300), np.uint8), "all-black"),
+    (np.full((40, 300), 200, np.uint8), "uniform"),
+    (np.zeros((40, 300), np.int64), "dtype"),
+    (np.zeros((40, 300), np.complex64), "dtype"),
+    (np.full((40, 300), np.nan, np.float32), "NaN"),
+    (np.full((40, 300), 3.0, np.float32), r"\[0, 1\]"),
+    (np.zeros((4, 40, 300, 3), np.uint8), "shape"),
+])
+def test_bad_images_raise_a_clear_error(generator, image, message):
+    with pytest.raises(ValueError, match=message):
+        generator.transcribe(image=image)
+
+
+def test_corrupt_and_truncated_image_files(generator, tmp_path):
+    import cv2
+
+    from vafn_gym.multimedia.strips import render_strip
+
+    good = tmp_path / "card.png"
+    cv2.imwrite(str(good), render_strip([1, 2], np.random.default_rng(0)))
+    truncated = tmp_path / "truncated.png"
+    truncated.write_bytes(good.read_bytes()[:30])
+    for path in (truncated, tmp_path / "missing.png"):
+        with pytest.raises(ValueError, match=str(path.name) if path.exists() else "does not exist"):
+            generator.transcribe(image=str(path))
+
+
+@needs_espeak
+def test_one_corrupted_modality_is_dropped_not_fatal(generator, sample):
+    arms, wave, rate, image = sample
+    result = generator.transcribe(audio=np.zeros(rate, np.float32), sample_rate=rate, image=image)
+    assert result.arms == tuple(arms) and "audio" in result.dropped and result.modalities == ("image",)
+    assert result.low_confidence  # a dropped modality is reported
+    result = generator.transcribe(audio=(wave, rate), image=np.zeros((40, 300), np.uint8))
+    assert result.arms == tuple(arms) and "image" in result.dropped
+    with pytest.raises(ValueError, match="no usable input.*audio.*image"):
+        generator.transcribe(audio=np.zeros(rate, np.float32), sample_rate=rate, image=np.zeros((4, 4), np.uint8))
+
+
+# --- streaming into the instruction queue ----------------------------------------------------------------------------
+@needs_espeak
+def test_stream_enqueues_results_and_survives_bad_input(generator, sample):
+    queue_module = pytest.importorskip("vafn_gym.queue")
+    from vafn_gym.multimedia import MultimediaStream
+
+    arms, wave, rate, image = sample
+    queue = queue_module.InstructionQueue(capacity=3)
+    with MultimediaStream(queue, generator) as stream:
+        good = stream.submit(audio=(wave, rate), metadata={"user": "alice"})
+        nan = stream.submit(audio=np.full(100, np.nan, np.float32), sample_rate=rate)
+        black = stream.submit(image=np.zeros((10, 10), np.uint8))
+        av = stream.submit(audio=(wave, rate), image=image)
+        code = stream.submit(code="3,1")
+        overflow = stream.submit(code="1")  # capacity 3: QueueFullError becomes an event
+        assert stream.wait(timeout=60)
+        assert stream.alive
+    by_ticket = {event.ticket: event for event in stream.events}
+    assert by_ticket[good].status == by_ticket[av].status == by_ticket[code].status == "enqueued"
+    assert by_ticket[nan].status == "error" and "NaN" in by_ticket[nan].message
+    assert by_ticket[black].status == "error" and "all-black" in by_ticket[black].message
+    assert by_ticket[overflow].status == "error" and "QueueFull" in by_ticket[overflow].message
+    entries = [queue.dequeue() for _ in range(len(queue))]
+    assert [e.source for e in entries] == ["audio", "audio+image", "code"]
+    assert entries[0].instruction.arms == tuple(arms) and entries[2].instruction.arms == (3, 1)
+    first = entries[0].metadata
+    assert first["user"] == "alice" and 0 < first["transcribe_s"] <= first["latency_s"] < 30
+    assert len(first["confidences"]) == len(arms)
+
+
+def test_stream_rejects_low_confidence_and_survives_a_crashing_generator():
+    queue_module = pytest.importorskip("vafn_gym.queue")
+    from vafn_gym.multimedia import MultimediaStream
+    from vafn_gym.multimedia.generator import Transcription
+
+    class Flaky:
+        def __init__(self):
+            self.calls = 0
+
+        def transcribe(self, **kwargs):
+            self.calls += 1
+            if self.calls == 1:
+                raise RuntimeError("boom")
+            return Transcription(Instruction.from_arms([1]), (0.2,), 0.2, True, ("audio",), "audio")
+
+    queue = queue_module.InstructionQueue()
+    seen = []
+    with MultimediaStream(queue, Flaky(), on_event=seen.append) as stream:
+        stream.submit(code="1")
+        stream.submit(code="1")
+        assert stream.wait(timeout=10) and stream.alive
+    assert [e.status for e in stream.events] == ["error", "rejected"] and len(seen) == 2
+    assert len(queue) == 0 and threading.active_count() >= 1

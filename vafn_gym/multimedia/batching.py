@@ -1,0 +1,112 @@
+"""Turning cached items into padded model batches, with the training-time augmentations."""
+
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+
+from vafn_gym.multimedia.constants import IMAGE_HEIGHT, MAX_IMAGE_WIDTH, MIN_IMAGE_WIDTH, SAMPLE_RATE
+from vafn_gym.multimedia.dataset import INK_LEVELS, TrainingData
+from vafn_gym.multimedia.features import log_mel_batch
+
+#: Augmentation settings (training only).
+NOISE_PROBABILITY: float = 0.5
+SPEC_MASK_PROBABILITY: float = 0.5
+MAX_FREQ_MASK: int = 6
+MAX_TIME_MASK: int = 8
+CUTOUT_PROBABILITY: float = 0.3
+STRETCH_RANGE: tuple[float, float] = (0.8, 1.25)
+INK_GAIN_RANGE: tuple[float, float] = (0.6, 1.0)
+INK_NOISE_SIGMA: float = 0.05
+
+
+def pad_images(strips: Sequence[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Right-pad canonical strips (float, ink bright on 0) into (B, 1, IMAGE_HEIGHT, W_max) plus widths.
+
+    :param strips: (IMAGE_HEIGHT, W_i) float arrays.
+    """
+    widths = [s.shape[1] for s in strips]
+    batch = np.zeros((len(strips), 1, IMAGE_HEIGHT, max(widths)), np.float32)
+    for i, strip in enumerate(strips):
+        batch[i, 0, :, : strip.shape[1]] = strip
+    return torch.from_numpy(batch), torch.tensor(widths)
+
+
+def audio_batch(waveforms: Sequence[np.ndarray], sample_rate: int = SAMPLE_RATE) -> tuple[torch.Tensor, torch.Tensor]:
+    """Log-mel features (B, N_MELS, T) and frame counts of float waveforms at one sample rate.
+
+    :param waveforms: float32 clips.
+    :param sample_rate: their sample rate.
+    """
+    lengths = [len(w) for w in waveforms]
+    padded = np.zeros((len(waveforms), max(lengths)), np.float32)
+    for i, w in enumerate(waveforms):
+        padded[i, : len(w)] = w
+    return log_mel_batch(torch.from_numpy(padded), torch.tensor(lengths), sample_rate)
+
+
+def _stretch(strip: np.ndarray, factor: float) -> np.ndarray:
+    import cv2
+
+    width = int(np.clip(round(strip.shape[1] * factor), MIN_IMAGE_WIDTH, MAX_IMAGE_WIDTH))
+    return cv2.resize(strip, (width, strip.shape[0]), interpolation=cv2.INTER_AREA)
+
+
+def pad_features(features: Sequence[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Right-pad (N_MELS, T_i) feature arrays into (B, N_MELS, T_max) plus frame counts.
+
+    :param features: per-utterance log-mel arrays.
+    """
+    frames = [f.shape[1] for f in features]
+    batch = np.zeros((len(features), features[0].shape[0], max(frames)), np.float32)
+    for i, f in enumerate(features):
+        batch[i, :, : f.shape[1]] = f
+    return torch.from_numpy(batch), torch.tensor(frames)
+
+
+def bucketed_batches(data: TrainingData, batch_size: int, rng: np.random.Generator, pool: int = 8) -> list[np.ndarray]:
+    """Random batches of similar-length items (less padding): draw ``pool`` batches' worth, sort by length, split.
+
+    :param data: cached items.
+    :param batch_size: items per batch.
+    :param rng: random generator.
+    :param pool: batches drawn per call.
+    """
+    indices = rng.integers(0, len(data), batch_size * pool)
+    indices = indices[np.argsort([data.clean_audio[i].shape[1] for i in indices], kind="stable")]
+    batches = np.split(indices, pool)
+    return [batches[i] for i in rng.permutation(pool)]
+
+
+def make_batch(data: TrainingData, indices: np.ndarray, rng: Optional[np.random.Generator]) -> dict[str, torch.Tensor]:
+    """Build a training (``rng`` given: augmented) or evaluation (``rng`` None: clean) batch.
+
+    :param data: cached items.
+    :param indices: which items.
+    :param rng: augmentation randomness; None disables augmentation.
+    """
+    audio, strips = [], []
+    for i in indices:
+        noisy = rng is not None and rng.random() < NOISE_PROBABILITY
+        features = (data.noisy_audio[i] if noisy else data.clean_audio[i]).astype(np.float32)
+        use_mask = rng is not None and rng.random() < CUTOUT_PROBABILITY
+        strip = (data.masked[i] if use_mask else data.clean[i]).astype(np.float32) / INK_LEVELS
+        if rng is not None:
+            if rng.random() < SPEC_MASK_PROBABILITY:
+                features = features.copy()
+                f0 = int(rng.integers(0, features.shape[0] - MAX_FREQ_MASK))
+                features[f0:f0 + int(rng.integers(1, MAX_FREQ_MASK + 1))] = 0.0
+                t0 = int(rng.integers(0, max(1, features.shape[1] - MAX_TIME_MASK)))
+                features[:, t0:t0 + int(rng.integers(1, MAX_TIME_MASK + 1))] = 0.0
+            strip = _stretch(strip, rng.uniform(*STRETCH_RANGE)) * rng.uniform(*INK_GAIN_RANGE)
+            strip = np.clip(strip + rng.normal(0.0, INK_NOISE_SIGMA, strip.shape), 0.0, 1.0).astype(np.float32)
+        audio.append(features)
+        strips.append(strip)
+    features, frames = pad_features(audio)
+    images, widths = pad_images(strips)
+    lengths = torch.from_numpy(data.lengths[indices].astype(np.int64))
+    targets = torch.from_numpy(data.arms[indices].astype(np.int64))
+    return {"audio": features, "audio_lengths": frames, "image": images, "image_lengths": widths,
+            "targets": targets, "target_lengths": lengths}

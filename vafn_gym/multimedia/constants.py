@@ -1,0 +1,65 @@
+"""The one place for every number of the multimedia pipeline: audio framing, mel bands, image geometry, vocabulary."""
+
+from __future__ import annotations
+
+from vafn_gym.constants import MAX_INSTRUCTION_LENGTH, NUM_ARMS
+
+# --- audio ---
+#: Sample rate of stored training audio (Hz); inference accepts any rate in [MIN_SAMPLE_RATE, MAX_SAMPLE_RATE].
+SAMPLE_RATE: int = 16_000
+MIN_SAMPLE_RATE: int = 16_000
+MAX_SAMPLE_RATE: int = 192_000
+#: STFT window and hop, in seconds (converted to samples per input rate so no resampling is needed).
+WIN_SECONDS: float = 0.025
+HOP_SECONDS: float = 0.010
+#: Mel filterbank: number of bands and frequency range (Hz); bands above Nyquist stay empty for low rates.
+N_MELS: int = 40
+F_MIN: float = 20.0
+F_MAX: float = 7_600.0
+#: Floor added before the log of mel power.
+LOG_EPS: float = 1e-6
+#: Longest accepted utterance (seconds); longer audio is rejected rather than silently truncated.
+MAX_AUDIO_SECONDS: float = 20.0
+#: Peak-normalised RMS (dBFS) below which a clip counts as silent.
+SILENCE_DBFS: float = -55.0
+#: Fraction of samples at full scale above which a clip is reported as clipped.
+CLIP_LEVEL: float = 0.999
+CLIP_FRACTION: float = 0.01
+#: Seconds of (near) silence used to render the spoken empty instruction's padding.
+EDGE_SILENCE_SECONDS: float = 0.1
+
+# --- images ---
+#: Height of the canonical strip every image is resized to, and the width of one digit cell when rendering.
+IMAGE_HEIGHT: int = 32
+CELL_WIDTH: int = 32
+#: Canvas width of a rendered strip (MAX_INSTRUCTION_LENGTH cells).
+IMAGE_WIDTH: int = CELL_WIDTH * MAX_INSTRUCTION_LENGTH
+#: Narrowest / widest canonical strip after aspect-preserving resizing.
+MIN_IMAGE_WIDTH: int = 16
+MAX_IMAGE_WIDTH: int = 2 * IMAGE_WIDTH
+#: Pixel noise sigma (gray levels) baked into rendered strips.
+PIXEL_NOISE_SIGMA: float = 8.0
+#: Standard deviation (gray levels) below which an image is considered blank / uniform.
+BLANK_IMAGE_STD: float = 1.0
+#: Foreground threshold (fraction of the normalised range) used to find the content box.
+CONTENT_THRESHOLD: float = 0.35
+#: Margin (fraction of content height) kept around the content box.
+CONTENT_MARGIN: float = 0.12
+
+# --- corruptions of the benchmark ---
+#: White-noise SNR (dB) of the "noise" rows and the Cutout area fraction range of Table 1.
+NOISE_SNR_DB: float = 20.0
+CUTOUT_FRACTION: tuple[float, float] = (0.10, 0.20)
+
+# --- vocabulary / model ---
+#: CTC vocabulary: index 0 is the blank, index k (1..NUM_ARMS) is arm k.
+BLANK: int = 0
+VOCAB_SIZE: int = NUM_ARMS + 1
+#: Time downsampling of both encoders (frames of the latent per input frame / pixel column).
+ENCODER_STRIDE: int = 4
+#: Dimension of the modality-agnostic latent.
+LATENT_DIM: int = 64
+#: A result whose weakest decision has probability below this is flagged low-confidence.
+LOW_CONFIDENCE: float = 0.5
+
+__all__ = [name for name in dir() if name.isupper()] + ["MAX_INSTRUCTION_LENGTH", "NUM_ARMS"]

@@ -1,0 +1,233 @@
+"""Seeded, sharded, cached generation of paired (speech, digit strip, arm ids) items.
+
+Item ``i`` of a split draws everything from ``np.random.default_rng([seed, split_code, i])``, so labels, voices and
+images do not depend on sharding. espeak-ng keeps internal state, so audio is bit-identical only when the same
+fixed-size shard is synthesised in a fresh process: every shard runs in its own spawned process.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import multiprocessing
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from vafn_gym.constants import DIFFICULTY_LENGTHS
+from vafn_gym.multimedia.constants import MAX_INSTRUCTION_LENGTH, NUM_ARMS, SAMPLE_RATE
+
+#: Splits: training voices/glyphs; fresh items of the same voices/glyphs; held-out voices, variants and glyphs.
+SPLIT_CODES: dict[str, int] = {"train": 0, "test": 1, "heldout": 2}
+#: Items per shard; part of the dataset's identity because espeak output depends on the shard's call history.
+SHARD_SIZE: int = 500
+#: Default cache directory for generated training data.
+DEFAULT_CACHE = Path(os.environ.get("VAFN_CACHE", Path.home() / ".cache" / "vafn" / "multimedia"))
+#: SNR range (dB) of the noisy copy of each cached training utterance.
+TRAIN_SNR_RANGE_DB: tuple[float, float] = (5.0, 35.0)
+#: Quantisation of cached strips (ink in [0, 1] stored as uint8).
+INK_LEVELS: float = 255.0
+_INK_LEVELS = INK_LEVELS
+
+
+@dataclass(frozen=True)
+class ItemSpec:
+    """Everything needed to render one item: the arm ids, how they are spoken and how they are drawn."""
+
+    arms: tuple[int, ...]
+    voice: "object"
+    template: int
+    empty_phrase: int
+    image_seed: int
+    heldout: bool
+
+
+def item_spec(seed: int, split: str, index: int, difficulty: Optional[str] = None) -> ItemSpec:
+    """The deterministic specification of item ``index`` of ``split``.
+
+    :param seed: dataset seed.
+    :param split: "train", "test" or "heldout".
+    :param index: item index.
+    :param difficulty: restrict the length to a paper bucket ("easy", "medium", "hard"); None = uniform 0..10.
+    """
+    from vafn_gym.multimedia.speech import EMPTY_PHRASES, TEMPLATES, sample_voice
+
+    if split not in SPLIT_CODES:
+        raise ValueError(f"unknown split {split!r}; choose from {list(SPLIT_CODES)}")
+    difficulty_code = 0 if difficulty is None else 1 + list(DIFFICULTY_LENGTHS).index(difficulty)
+    rng = np.random.default_rng([seed, SPLIT_CODES[split], difficulty_code, index])
+    low, high = (0, MAX_INSTRUCTION_LENGTH) if difficulty is None else DIFFICULTY_LENGTHS[difficulty]
+    length = int(rng.integers(low, high + 1))
+    arms = tuple(int(a) for a in rng.integers(1, NUM_ARMS + 1, length))
+    heldout = split == "heldout"
+    voice = sample_voice(rng, heldout)
+    return ItemSpec(arms, voice, int(rng.integers(len(TEMPLATES))), int(rng.integers(len(EMPTY_PHRASES))),
+                    int(rng.integers(2**31)), heldout)
+
+
+def render_item(spec: ItemSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Synthesise the speech (float32 at espeak's rate) and render the strip (uint8) of one item.
+
+    :param spec: the item specification.
+    """
+    from vafn_gym.multimedia.speech import speak
+    from vafn_gym.multimedia.strips import render_strip
+
+    waveform = speak(spec.arms, spec.voice, spec.template, spec.empty_phrase)
+    image = render_strip(spec.arms, np.random.default_rng(spec.image_seed), heldout=spec.heldout)
+    return waveform, image
+
+
+@dataclass
+class RawItems:
+    """Raw rendered items: arm ids, waveforms at ``sample_rate`` and uint8 strips."""
+
+    arms: list[tuple[int, ...]]
+    waveforms: list[np.ndarray]
+    sample_rate: int
+    images: list[np.ndarray]
+    specs: list[ItemSpec]
+
+
+def _render_range(args: tuple[int, str, int, int, Optional[str]]) -> RawItems:
+    from vafn_gym.multimedia.speech import ESPEAK_SAMPLE_RATE
+
+    seed, split, start, count, difficulty = args
+    specs = [item_spec(seed, split, i, difficulty) for i in range(start, start + count)]
+    rendered = [render_item(spec) for spec in specs]
+    return RawItems([s.arms for s in specs], [r[0] for r in rendered], ESPEAK_SAMPLE_RATE,
+                    [r[1] for r in rendered], specs)
+
+
+def _pool(workers: int):
+    return multiprocessing.get_context("spawn").Pool(workers, maxtasksperchild=1, initializer=_quiet_worker)
+
+
+def _quiet_worker() -> None:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
+def generate_raw(seed: int, split: str, count: int, difficulty: Optional[str] = None, start: int = 0,
+                 workers: int = 1) -> RawItems:
+    """Render ``count`` items in fresh processes (one per shard), so the audio is reproducible.
+
+    :param seed: dataset seed.
+    :param split: "train", "test" or "heldout".
+    :param count: number of items.
+    :param difficulty: optional paper difficulty bucket.
+    :param start: index of the first item.
+    :param workers: parallel processes.
+    """
+    jobs = [(seed, split, s, min(SHARD_SIZE, start + count - s), difficulty) for s in range(start, start + count, SHARD_SIZE)]
+    with _pool(workers) as pool:
+        parts = pool.map(_render_range, jobs, chunksize=1)
+    return RawItems([a for p in parts for a in p.arms], [w for p in parts for w in p.waveforms], parts[0].sample_rate,
+                    [im for p in parts for im in p.images], [s for p in parts for s in p.specs])
+
+
+def _compact_shard(args: tuple[int, str, int, int, str]) -> str:
+    """Render one shard and store training-ready arrays: log-mel features of the clean and of a noisy copy of each
+    utterance (resampled to SAMPLE_RATE), and canonical strips of the clean and of a Cutout copy of each image."""
+    import soxr
+    import torch
+
+    from vafn_gym.multimedia.corruptions import add_awgn, cutout
+    from vafn_gym.multimedia.features import log_mel
+    from vafn_gym.multimedia.images import canonical_strip
+
+    torch.set_num_threads(1)
+    seed, split, start, count, path = args
+    raw = _render_range((seed, split, start, count, None))
+    clean_audio, noisy_audio, clean, masked = [], [], [], []
+    for index, waveform, image in zip(range(start, start + count), raw.waveforms, raw.images):
+        rng = np.random.default_rng([seed, SPLIT_CODES[split], index, 1])
+        wave = soxr.resample(waveform, raw.sample_rate, SAMPLE_RATE).astype(np.float32)
+        clean_audio.append(log_mel(wave, SAMPLE_RATE)[0].numpy().astype(np.float16))
+        noisy = add_awgn(wave, rng.uniform(*TRAIN_SNR_RANGE_DB), rng)
+        noisy_audio.append(log_mel(noisy, SAMPLE_RATE)[0].numpy().astype(np.float16))
+        clean.append(np.rint(canonical_strip(image) * _INK_LEVELS).astype(np.uint8))
+        masked.append(np.rint(canonical_strip(cutout(image, rng)) * _INK_LEVELS).astype(np.uint8))
+    np.savez(path + ".tmp.npz", arms=np.array([list(a) + [0] * (MAX_INSTRUCTION_LENGTH - len(a)) for a in raw.arms], np.int8),
+             lengths=np.array([len(a) for a in raw.arms], np.int8),
+             clean_audio=np.concatenate(clean_audio, axis=1), noisy_audio=np.concatenate(noisy_audio, axis=1),
+             frames=np.array([a.shape[1] for a in clean_audio], np.int64),
+             clean=np.concatenate(clean, axis=1), clean_widths=np.array([c.shape[1] for c in clean], np.int64),
+             masked=np.concatenate(masked, axis=1), masked_widths=np.array([m.shape[1] for m in masked], np.int64))
+    os.replace(path + ".tmp.npz", path)
+    return path
+
+
+@dataclass
+class TrainingData:
+    """Training-ready arrays of a cached split (ragged arrays stored flat with lengths)."""
+
+    arms: np.ndarray
+    lengths: np.ndarray
+    clean_audio: list[np.ndarray]
+    noisy_audio: list[np.ndarray]
+    clean: list[np.ndarray]
+    masked: list[np.ndarray]
+
+    def __len__(self) -> int:
+        return len(self.lengths)
+
+    @classmethod
+    def load(cls, paths: Sequence[str]) -> "TrainingData":
+        """Concatenate cached shard files.
+
+        :param paths: shard files written by :func:`build_cache`.
+        """
+        arms, lengths, clean_audio, noisy_audio, clean, masked = [], [], [], [], [], []
+        for path in paths:
+            with np.load(path) as shard:
+                arms.append(shard["arms"])
+                lengths.append(shard["lengths"])
+                cuts = np.cumsum(shard["frames"])[:-1]
+                clean_audio += np.split(shard["clean_audio"], cuts, axis=1)
+                noisy_audio += np.split(shard["noisy_audio"], cuts, axis=1)
+                clean += np.split(shard["clean"], np.cumsum(shard["clean_widths"])[:-1], axis=1)
+                masked += np.split(shard["masked"], np.cumsum(shard["masked_widths"])[:-1], axis=1)
+        return cls(np.concatenate(arms), np.concatenate(lengths), clean_audio, noisy_audio, clean, masked)
+
+
+def cache_key(seed: int, split: str, count: int) -> str:
+    """Name of a cached dataset, including a hash of the generator's source so stale caches are not reused.
+
+    :param seed: dataset seed.
+    :param split: split name.
+    :param count: number of items.
+    """
+    here = Path(__file__).parent
+    digest = hashlib.sha1()
+    for name in ("dataset.py", "speech.py", "strips.py", "images.py", "corruptions.py", "constants.py", "features.py"):
+        digest.update((here / name).read_bytes())
+    return f"{split}-seed{seed}-n{count}-shard{SHARD_SIZE}-{digest.hexdigest()[:10]}"
+
+
+def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CACHE, workers: int = 2,
+                progress: bool = True) -> TrainingData:
+    """Generate (or reuse) the cached training arrays of a split, one fresh process per shard, with a progress bar.
+
+    :param seed: dataset seed.
+    :param split: "train", "test" or "heldout".
+    :param count: number of items.
+    :param cache_dir: where shards are stored.
+    :param workers: parallel processes.
+    :param progress: show a tqdm progress bar.
+    """
+    from tqdm import tqdm
+
+    directory = Path(cache_dir) / cache_key(seed, split, count)
+    directory.mkdir(parents=True, exist_ok=True)
+    jobs = [(seed, split, s, min(SHARD_SIZE, count - s), str(directory / f"shard{s // SHARD_SIZE:04d}.npz"))
+            for s in range(0, count, SHARD_SIZE)]
+    todo = [job for job in jobs if not os.path.exists(job[-1])]
+    if todo:
+        with _pool(workers) as pool, tqdm(total=len(jobs), initial=len(jobs) - len(todo), disable=not progress,
+                                          desc=f"generating {split} data", unit="shard") as bar:
+            for _ in pool.imap_unordered(_compact_shard, todo, chunksize=1):
+                bar.update()
+    return TrainingData.load([job[-1] for job in jobs])

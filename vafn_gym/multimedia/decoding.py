@@ -1,0 +1,124 @@
+"""CTC decoding of Φ: greedy paths with per-token confidence, token embeddings, and audio-visual fusion in Φ."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from vafn_gym.multimedia.constants import BLANK
+
+
+@dataclass
+class Decoded:
+    """Greedy CTC reading of one Φ sequence.
+
+    ``arms``: decoded arm ids; ``confidences``: per-token probability at its peak frame; ``peaks``: frame index of each
+    token; ``embeddings``: (len(arms), LATENT_DIM) token embeddings (posterior-weighted mean of the token's frames);
+    ``weakest``: lowest max-probability over all frames (the least certain decision of the path).
+    """
+
+    arms: list[int]
+    confidences: list[float]
+    peaks: list[int]
+    embeddings: torch.Tensor
+    weakest: float
+    log_probs: torch.Tensor = field(repr=False)
+
+
+def greedy_decode(phi: torch.Tensor, logits: torch.Tensor) -> Decoded:
+    """Best-path CTC decoding of one sequence.
+
+    :param phi: (T, LATENT_DIM) latent frames.
+    :param logits: (T, VOCAB_SIZE) decoder logits of those frames.
+    """
+    log_probs = torch.log_softmax(logits, dim=-1)
+    probs = log_probs.exp()
+    best_prob, best = probs.max(dim=-1)
+    best_np = best.numpy()
+    arms, confidences, peaks, embeddings = [], [], [], []
+    t, length = 0, len(best_np)
+    while t < length:
+        label = int(best_np[t])
+        end = t + 1
+        while end < length and best_np[end] == label:
+            end += 1
+        if label != BLANK:
+            segment = probs[t:end, label]
+            peak = t + int(torch.argmax(segment))
+            arms.append(label)
+            confidences.append(float(segment.max()))
+            peaks.append(peak)
+            weights = segment / segment.sum()
+            embeddings.append((weights[:, None] * phi[t:end]).sum(0))
+        t = end
+    stacked = torch.stack(embeddings) if embeddings else phi.new_zeros((0, phi.shape[-1]))
+    return Decoded(arms, confidences, peaks, stacked, float(best_prob.min()) if length else 0.0, log_probs)
+
+
+def sequence_log_likelihood(log_probs: torch.Tensor, arms: list[int]) -> float:
+    """CTC log-likelihood log P(arms | frames) (-inf when the sequence cannot be aligned).
+
+    :param log_probs: (T, VOCAB_SIZE) log posteriors.
+    :param arms: candidate arm ids.
+    """
+    frames = log_probs.shape[0]
+    targets = torch.tensor(list(arms), dtype=torch.long).reshape(1, len(arms))
+    loss = torch.nn.functional.ctc_loss(log_probs[:, None, :], targets, torch.tensor([frames]), torch.tensor([len(arms)]),
+                                        blank=BLANK, reduction="sum", zero_infinity=False)
+    return float(-loss)
+
+
+@dataclass
+class Fused:
+    """Result of fusing several modalities: the arm ids, per-token confidences and how they were obtained."""
+
+    arms: list[int]
+    confidences: list[float]
+    method: str
+    weakest: float
+
+
+def fuse(readings: dict[str, Decoded], decoder: torch.nn.Module) -> Fused:
+    """Fuse per-modality readings in Φ.
+
+    When all modalities read the same number of tokens, each token's Φ embeddings are averaged with weights
+    proportional to the modalities' token confidences and decoded again by the shared decoder ("latent" fusion).
+    When the counts disagree, every modality's reading is rescored by the sum over modalities of its
+    confidence-weighted CTC log-likelihood and the best candidate wins ("rescored"); its confidence is the candidate's
+    posterior among the candidates, so a disagreement between modalities shows up as low confidence.
+
+    :param readings: modality -> greedy reading.
+    :param decoder: the shared decoder (pointwise: Φ vector -> CTC logits).
+    """
+    names = list(readings)
+    if len(names) == 1:
+        only = readings[names[0]]
+        return Fused(only.arms, only.confidences, names[0], only.weakest)
+    counts = {len(readings[n].arms) for n in names}
+    if len(counts) == 1:
+        count = counts.pop()
+        if count == 0:
+            return Fused([], [], "latent", max(readings[n].weakest for n in names))
+        weights = torch.tensor([[readings[n].confidences[j] for j in range(count)] for n in names])  # (M, L)
+        weights = weights / weights.sum(0, keepdim=True)
+        stacked = torch.stack([readings[n].embeddings for n in names])  # (M, L, D)
+        fused = (weights[:, :, None] * stacked).sum(0)
+        probs = torch.softmax(decoder(fused), dim=-1)
+        probs[:, BLANK] = 0.0  # a token position was agreed on; only its identity is decided here
+        probs = probs / probs.sum(-1, keepdim=True)
+        confidence, arms = probs.max(-1)
+        return Fused([int(a) for a in arms], [float(c) for c in confidence], "latent",
+                     max(readings[n].weakest for n in names))
+    sharpness = {n: float(np.mean(readings[n].confidences)) if readings[n].confidences else readings[n].weakest for n in names}
+    candidates = [readings[n].arms for n in names]
+    scores = np.array([sum(sharpness[m] * sequence_log_likelihood(readings[m].log_probs, cand) for m in names)
+                       for cand in candidates])
+    scores = np.nan_to_num(scores, nan=-1e9, neginf=-1e9)
+    posterior = np.exp(scores - scores.max())
+    posterior /= posterior.sum()
+    best = int(np.argmax(scores))
+    winner = readings[names[best]]
+    return Fused(list(winner.arms), [min(c, float(posterior[best])) for c in winner.confidences], "rescored",
+                 min(winner.weakest, float(posterior[best])))

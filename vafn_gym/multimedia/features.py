@@ -1,0 +1,89 @@
+"""Log-mel features computed with torch (one code path for training batches and single-clip inference).
+
+The STFT window and hop are fixed in *seconds*, so any sample rate gives the same frame rate and mel bands without
+resampling; the mel filterbank for each rate is built once with librosa and cached.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from vafn_gym.multimedia.constants import F_MAX, F_MIN, HOP_SECONDS, LOG_EPS, N_MELS, WIN_SECONDS
+
+if TYPE_CHECKING:  # pragma: no cover
+    import torch
+
+
+def frame_params(sample_rate: int) -> tuple[int, int, int]:
+    """(n_fft, win_length, hop_length) in samples for ``sample_rate``.
+
+    :param sample_rate: audio sample rate in Hz.
+    """
+    win = int(round(WIN_SECONDS * sample_rate))
+    hop = int(round(HOP_SECONDS * sample_rate))
+    return 1 << (win - 1).bit_length(), win, hop
+
+
+@lru_cache(maxsize=8)
+def _filterbank(sample_rate: int) -> tuple["torch.Tensor", "torch.Tensor"]:
+    import warnings
+
+    import librosa
+    import torch
+
+    n_fft, win, _ = frame_params(sample_rate)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # empty top bands are expected below 2 * F_MAX
+        mel = librosa.filters.mel(sr=sample_rate, n_fft=n_fft, n_mels=N_MELS, fmin=F_MIN, fmax=F_MAX)
+    return torch.from_numpy(mel.astype(np.float32)), torch.hann_window(win)
+
+
+def num_frames(num_samples: int, sample_rate: int) -> int:
+    """Number of feature frames of a clip with ``num_samples`` samples.
+
+    :param num_samples: clip length in samples.
+    :param sample_rate: sample rate in Hz.
+    """
+    _, _, hop = frame_params(sample_rate)
+    return num_samples // hop + 1
+
+
+def log_mel_batch(waveforms: "torch.Tensor", lengths: "torch.Tensor", sample_rate: int) -> tuple["torch.Tensor", "torch.Tensor"]:
+    """Per-utterance mean/variance-normalised log-mel features of a zero-padded batch.
+
+    :param waveforms: (B, N) float tensor.
+    :param lengths: (B,) number of valid samples of each clip.
+    :param sample_rate: sample rate of every clip in Hz.
+    :return: features (B, N_MELS, T) and valid frame counts (B,).
+    """
+    import torch
+
+    n_fft, win, hop = frame_params(sample_rate)
+    mel, window = _filterbank(sample_rate)
+    spec = torch.stft(waveforms, n_fft=n_fft, hop_length=hop, win_length=win, window=window, center=True,
+                      pad_mode="constant", return_complex=True)
+    power = spec.real.square() + spec.imag.square()
+    features = torch.log(torch.matmul(mel, power) + LOG_EPS)  # (B, N_MELS, T)
+    frames = torch.clamp(lengths // hop + 1, max=features.shape[-1])
+    mask = (torch.arange(features.shape[-1])[None, :] < frames[:, None]).to(features.dtype)[:, None, :]
+    count = frames.to(features.dtype)[:, None, None]
+    mean = (features * mask).sum(-1, keepdim=True) / count
+    var = (((features - mean) * mask) ** 2).sum(-1, keepdim=True) / count
+    normalised = (features - mean) / torch.sqrt(var + 1e-5) * mask
+    return normalised, frames
+
+
+def log_mel(waveform: np.ndarray, sample_rate: int) -> "torch.Tensor":
+    """Normalised log-mel features (1, N_MELS, T) of one mono clip.
+
+    :param waveform: float32 samples.
+    :param sample_rate: sample rate in Hz.
+    """
+    import torch
+
+    tensor = torch.from_numpy(np.ascontiguousarray(waveform, dtype=np.float32))[None]
+    features, _ = log_mel_batch(tensor, torch.tensor([tensor.shape[1]]), sample_rate)
+    return features

@@ -1,0 +1,226 @@
+"""InstructionGenerator: any non-empty subset of {speech, image, machine code} -> an :class:`Instruction`."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional, Union
+
+import numpy as np
+
+from vafn_gym.instructions import Instruction
+from vafn_gym.multimedia.audio import AudioSource, load_audio
+from vafn_gym.multimedia.constants import IMAGE_HEIGHT, LOW_CONFIDENCE, MAX_INSTRUCTION_LENGTH, SAMPLE_RATE
+from vafn_gym.multimedia.images import ImageSource, canonical_strip
+
+#: The packaged checkpoint (weights + metadata JSON), produced by ``python -m vafn_gym.multimedia.train``.
+DEFAULT_CHECKPOINT = Path(__file__).parent / "checkpoints" / "instruction_model.pt"
+#: Sample rates whose mel filterbanks are built when a generator loads (the first librosa call is slow).
+WARM_SAMPLE_RATES: tuple[int, ...] = (SAMPLE_RATE, 22_050, 44_100, 48_000)
+
+
+@dataclass(frozen=True)
+class Transcription:
+    """What the generator read.
+
+    :param instruction: the decoded instruction.
+    :param confidences: per-token probability of each arm id (1.0 for machine code).
+    :param confidence: sequence confidence: the least certain decision of the reading (1.0 for machine code).
+    :param low_confidence: True when ``confidence`` is below the threshold, the input had quality warnings, or
+        the modalities disagreed on the sequence. Treat such a result as a guess.
+    :param modalities: the modalities that contributed.
+    :param method: "code", "audio", "image", "latent" (token-wise fusion in Φ) or "rescored" (joint CTC rescoring).
+    :param readings: each modality's own reading (arm ids).
+    :param warnings: non-fatal input problems (clipping, dropped modalities, disagreement).
+    :param dropped: modalities that were given but unusable, with the reason.
+    :param latency_s: wall time of the call (features included), seconds.
+    """
+
+    instruction: Instruction
+    confidences: tuple[float, ...]
+    confidence: float
+    low_confidence: bool
+    modalities: tuple[str, ...]
+    method: str
+    readings: dict = field(default_factory=dict)
+    warnings: tuple[str, ...] = ()
+    dropped: dict = field(default_factory=dict)
+    latency_s: float = 0.0
+
+    @property
+    def arms(self) -> tuple[int, ...]:
+        """The decoded arm ids."""
+        return self.instruction.arms
+
+
+class InstructionGenerator:
+    """Reads instructions from speech, digit-strip images and machine code with one trained model.
+
+    :param model: a trained :class:`~vafn_gym.multimedia.model.InstructionModel`.
+    :param metadata: the checkpoint's metadata (training command, validation history).
+    :param low_confidence: threshold under which a result is flagged ``low_confidence``.
+    """
+
+    def __init__(self, model: Any, metadata: Optional[dict] = None, low_confidence: float = LOW_CONFIDENCE) -> None:
+        import torch
+
+        self.model = model.eval()
+        self.metadata = metadata or {}
+        self.low_confidence = float(low_confidence)
+        self._torch = torch
+
+    @classmethod
+    def load(cls, path: Union[str, os.PathLike, None] = None, warm: bool = True) -> "InstructionGenerator":
+        """Load a checkpoint (default: the packaged one); ``warm`` pays librosa's slow first call now.
+
+        :param path: ``.pt`` file written by the training command (its ``.json`` metadata must sit beside it).
+        :param warm: build the mel filterbanks of common sample rates and run one dummy pass per encoder.
+        """
+        import torch
+
+        from vafn_gym.multimedia.model import InstructionModel, ModelConfig
+
+        checkpoint = Path(path) if path is not None else DEFAULT_CHECKPOINT
+        if not checkpoint.is_file():
+            raise FileNotFoundError(f"no checkpoint at {checkpoint}; train one with `python -m vafn_gym.multimedia.train`")
+        meta_path = checkpoint.with_suffix(".json")
+        metadata = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+        model = InstructionModel(ModelConfig.from_dict(metadata["config"]) if "config" in metadata else ModelConfig())
+        model.load_state_dict(torch.load(checkpoint, map_location="cpu", weights_only=True))
+        generator = cls(model, metadata)
+        if warm:
+            generator.warm_up()
+        return generator
+
+    def warm_up(self) -> None:
+        """Build cached filterbanks and run each encoder once so the first real call is fast."""
+        from vafn_gym.multimedia.features import _filterbank
+
+        for rate in WARM_SAMPLE_RATES:
+            _filterbank(rate)
+        rng = np.random.default_rng(0)
+        self.encode_audio(rng.normal(0, 0.1, SAMPLE_RATE).astype(np.float32), SAMPLE_RATE)
+        self.encode_strip(np.zeros((IMAGE_HEIGHT, IMAGE_HEIGHT * 4), np.float32))
+
+    # --- encoders ---
+    def encode_audio(self, waveform: np.ndarray, sample_rate: int):
+        """Φ frames (T, LATENT_DIM) of a validated mono waveform.
+
+        :param waveform: float32 samples.
+        :param sample_rate: its rate in Hz.
+        """
+        from vafn_gym.multimedia.features import log_mel
+
+        torch = self._torch
+        with torch.inference_mode():
+            features = log_mel(waveform, sample_rate)
+            phi, _ = self.model.encode("audio", features, torch.tensor([features.shape[-1]]))
+        return phi[0]
+
+    def encode_strip(self, strip: np.ndarray):
+        """Φ frames (W', LATENT_DIM) of a canonical strip (see :func:`canonical_strip`).
+
+        :param strip: float32 (IMAGE_HEIGHT, W) ink image.
+        """
+        torch = self._torch
+        with torch.inference_mode():
+            tensor = torch.from_numpy(np.ascontiguousarray(strip, dtype=np.float32))[None, None]
+            phi, _ = self.model.encode("image", tensor, torch.tensor([strip.shape[1]]))
+        return phi[0]
+
+    def read(self, phi):
+        """Greedy CTC reading of Φ frames by the shared decoder.
+
+        :param phi: (T, LATENT_DIM) latent frames.
+        """
+        from vafn_gym.multimedia.decoding import greedy_decode
+
+        with self._torch.inference_mode():
+            return greedy_decode(phi, self.model.decode(phi))
+
+    # --- public API ---
+    def transcribe(self, audio: Optional[AudioSource] = None, image: Optional[ImageSource] = None,
+                   code: Optional[Union[str, list, Instruction]] = None, sample_rate: Optional[int] = None) -> Transcription:
+        """Read an instruction from any non-empty subset of modalities.
+
+        With several modalities, unusable ones (silent audio, blank image, …) are dropped with a warning; if none is
+        usable, ValueError names every problem. Machine code, when given, is authoritative (parsed, not inferred).
+
+        :param audio: path to an audio file, a waveform (with ``sample_rate``) or a ``(waveform, rate)`` tuple.
+        :param image: path or array (gray/BGR/BGRA) of digits in a left-to-right row.
+        :param code: machine code (``"2,3,1"``, ``"[2, 3, 1]"``, JSON, a list of arm ids or an Instruction).
+        :param sample_rate: sample rate of a bare ``audio`` waveform.
+        """
+        from vafn_gym.multimedia.decoding import fuse
+
+        started = time.perf_counter()
+        given = {name: value for name, value in (("audio", audio), ("image", image), ("code", code)) if value is not None}
+        if not given:
+            raise ValueError("transcribe needs at least one of audio=, image=, code=")
+        warnings: list[str] = []
+        dropped: dict[str, str] = {}
+        readings = {}
+        phis = {}
+        if "code" in given:
+            instruction = Instruction.coerce(given["code"])  # ValueError on malformed code
+        if "audio" in given:
+            try:
+                clip = load_audio(given["audio"], sample_rate)
+                warnings += clip.warnings
+                phis["audio"] = self.encode_audio(clip.waveform, clip.sample_rate)
+            except ValueError as error:
+                dropped["audio"] = str(error)
+        if "image" in given:
+            try:
+                phis["image"] = self.encode_strip(canonical_strip(given["image"]))
+            except ValueError as error:
+                dropped["image"] = str(error)
+        for name, phi in phis.items():
+            readings[name] = self.read(phi)
+        if "code" in given:
+            return self._code_result(instruction, readings, warnings, dropped, started)
+        if not readings:
+            raise ValueError("no usable input: " + "; ".join(f"{name}: {why}" for name, why in dropped.items()))
+        warnings += [f"{name} ignored: {why}" for name, why in dropped.items()]
+        with self._torch.inference_mode():
+            fused = fuse(readings, self.model.decode)
+        if len({tuple(r.arms) for r in readings.values()}) > 1:
+            warnings.append("modalities disagree: " + ", ".join(f"{n}={list(r.arms)}" for n, r in readings.items()))
+        arms = fused.arms[:MAX_INSTRUCTION_LENGTH]
+        if len(fused.arms) > MAX_INSTRUCTION_LENGTH:
+            warnings.append(f"read {len(fused.arms)} arm ids; only the first {MAX_INSTRUCTION_LENGTH} are kept")
+        confidence = min([fused.weakest] + list(fused.confidences))
+        low = confidence < self.low_confidence or bool(warnings)
+        return Transcription(
+            instruction=Instruction.from_arms(arms),
+            confidences=tuple(fused.confidences[: len(arms)]),
+            confidence=confidence,
+            low_confidence=low,
+            modalities=tuple(readings),
+            method=fused.method,
+            readings={name: tuple(r.arms) for name, r in readings.items()},
+            warnings=tuple(warnings),
+            dropped=dropped,
+            latency_s=time.perf_counter() - started,
+        )
+
+    @staticmethod
+    def _code_result(instruction: Instruction, readings: dict, warnings: list, dropped: dict, started: float) -> Transcription:
+        for name, reading in readings.items():
+            if tuple(reading.arms) != instruction.arms:
+                warnings.append(f"{name} reads {list(reading.arms)} but the code says {list(instruction.arms)}")
+        return Transcription(
+            instruction=instruction,
+            confidences=(1.0,) * len(instruction),
+            confidence=1.0,
+            low_confidence=False,
+            modalities=("code",) + tuple(readings),
+            method="code",
+            readings={"code": instruction.arms, **{name: tuple(r.arms) for name, r in readings.items()}},
+            warnings=tuple(warnings),
+            dropped=dropped,
+            latency_s=time.perf_counter() - started,
+        )

@@ -1,0 +1,116 @@
+"""Loading, validating and canonicalising images (OpenCV): any size, gray or BGR(A), either polarity -> a 32-px strip."""
+
+from __future__ import annotations
+
+import os
+from typing import Union
+
+import numpy as np
+
+from vafn_gym.multimedia.constants import (
+    BLANK_IMAGE_STD,
+    CONTENT_MARGIN,
+    CONTENT_THRESHOLD,
+    IMAGE_HEIGHT,
+    MAX_IMAGE_WIDTH,
+    MIN_IMAGE_WIDTH,
+)
+
+ImageSource = Union[str, os.PathLike, np.ndarray]
+#: Gaussian blur kernel (pixels, at canonical scale) used only to locate the content box.
+_BOX_BLUR = 5
+#: Images taller than this are first downscaled to it (speed; the output has IMAGE_HEIGHT rows).
+_WORK_HEIGHT = 4 * IMAGE_HEIGHT
+
+
+def _cv2():
+    import cv2
+
+    return cv2
+
+
+def read_image_file(path: Union[str, os.PathLike]) -> np.ndarray:
+    """Read an image file unchanged; a missing, corrupt or truncated file raises ValueError naming it.
+
+    :param path: file to read.
+    """
+    cv2 = _cv2()
+    if not os.path.isfile(path):
+        raise ValueError(f"image file {os.fspath(path)!r} does not exist")
+    data = np.fromfile(os.fspath(path), dtype=np.uint8)
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if image is None:
+        raise ValueError(f"image file {os.fspath(path)!r} is corrupt, truncated or not an image")
+    return image
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """Validate an image array and return it as float32 gray levels in [0, 255].
+
+    :param image: H x W gray, H x W x 3 BGR or H x W x 4 BGRA array of dtype uint8, uint16 or float in [0, 1].
+    """
+    cv2 = _cv2()
+    array = np.asarray(image)
+    if array.ndim == 3 and array.shape[2] == 1:
+        array = array[:, :, 0]
+    if array.ndim not in (2, 3) or (array.ndim == 3 and array.shape[2] not in (3, 4)):
+        raise ValueError(f"image must be H x W, H x W x 3 (BGR) or H x W x 4 (BGRA), got shape {array.shape}")
+    if array.size == 0 or min(array.shape[:2]) == 0:
+        raise ValueError(f"image is empty (shape {array.shape})")
+    if array.dtype == np.uint8:
+        scaled = array.astype(np.float32)
+    elif array.dtype == np.uint16:
+        scaled = array.astype(np.float32) / 257.0
+    elif array.dtype in (np.float32, np.float64):
+        if not np.all(np.isfinite(array)):
+            raise ValueError("image contains NaN or infinite pixels")
+        if array.min() < 0.0 or array.max() > 1.0:
+            raise ValueError(f"float images must lie in [0, 1], got range [{array.min():.3g}, {array.max():.3g}]")
+        scaled = array.astype(np.float32) * 255.0
+    else:
+        raise ValueError(f"unsupported image dtype {array.dtype}; use uint8, uint16 or float in [0, 1]")
+    if scaled.ndim == 3:
+        code = cv2.COLOR_BGR2GRAY if scaled.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        scaled = cv2.cvtColor(scaled, code)
+    return scaled
+
+
+def canonical_strip(image: ImageSource) -> np.ndarray:
+    """Turn an image of a digit row into the model's input: float32 (IMAGE_HEIGHT, W), ink bright on a zero background.
+
+    Steps: gray conversion, polarity from the median (the background), contrast normalisation, crop to the content
+    box plus a margin, aspect-preserving resize to IMAGE_HEIGHT rows.
+
+    :param image: path, or array accepted by :func:`to_gray`.
+    """
+    cv2 = _cv2()
+    gray = to_gray(read_image_file(image) if isinstance(image, (str, os.PathLike)) else image)
+    if float(gray.std()) < BLANK_IMAGE_STD:
+        shade = "all-black" if gray.mean() < 128 else "uniform"
+        raise ValueError(f"image is {shade} (every pixel ~ {gray.mean():.0f}): there is nothing to read")
+    if gray.shape[0] > _WORK_HEIGHT:  # work at a bounded resolution: the output is IMAGE_HEIGHT rows anyway
+        width = max(1, int(round(gray.shape[1] * _WORK_HEIGHT / gray.shape[0])))
+        gray = cv2.resize(gray, (width, _WORK_HEIGHT), interpolation=cv2.INTER_AREA)
+    background = float(np.median(gray))
+    ink = gray - background if background < 128 else background - gray
+    scale = float(np.percentile(ink, 99.5))
+    if scale <= BLANK_IMAGE_STD:
+        raise ValueError("image has no visible ink: no pixel stands out from the background")
+    ink = np.clip(ink / scale, 0.0, 1.0)
+    # content box on a resized, blurred copy so pixel noise does not count as ink
+    height, width = ink.shape
+    factor = IMAGE_HEIGHT / height
+    small = cv2.resize(ink, (max(1, int(round(width * factor))), IMAGE_HEIGHT), interpolation=cv2.INTER_AREA)
+    smooth = cv2.GaussianBlur(small, (_BOX_BLUR, _BOX_BLUR), 0)
+    rows = np.flatnonzero(smooth.max(axis=1) > CONTENT_THRESHOLD)
+    cols = np.flatnonzero(smooth.max(axis=0) > CONTENT_THRESHOLD)
+    if rows.size and cols.size:
+        top, bottom = rows[0] / factor, (rows[-1] + 1) / factor
+        left, right = cols[0] / factor, (cols[-1] + 1) / factor
+        margin = CONTENT_MARGIN * (bottom - top)
+        top, bottom = int(max(0, top - margin)), int(min(height, bottom + margin + 1))
+        left, right = int(max(0, left - margin)), int(min(width, right + margin + 1))
+        ink = ink[top:bottom, left:right]
+    crop_h, crop_w = ink.shape
+    new_w = int(np.clip(round(crop_w * IMAGE_HEIGHT / crop_h), MIN_IMAGE_WIDTH, MAX_IMAGE_WIDTH))
+    return cv2.resize(ink, (new_w, IMAGE_HEIGHT), interpolation=cv2.INTER_AREA).astype(np.float32)

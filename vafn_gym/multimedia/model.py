@@ -1,0 +1,140 @@
+"""The network of Sec. III-B: parallel encoders, a shared projection into the latent Φ, one CTC decoder.
+
+Audio: 1-D convolutions over log-mel frames. Image: 2-D convolutions over the canonical strip, collapsed over height
+into a left-to-right sequence. Both are projected by the *same* layer into Φ (a sequence of LATENT_DIM vectors, one
+per ENCODER_STRIDE input frames/columns); the shared pointwise decoder maps each Φ vector to CTC logits over
+{blank, arm 1..NUM_ARMS}. Being pointwise, the decoder reads single Φ vectors too (fused token embeddings).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import nn
+
+from vafn_gym.multimedia.constants import ENCODER_STRIDE, IMAGE_HEIGHT, LATENT_DIM, N_MELS, VOCAB_SIZE
+
+MODALITIES: tuple[str, ...] = ("audio", "image")
+
+
+@dataclass
+class ModelConfig:
+    """Sizes of the network (stored in the checkpoint)."""
+
+    audio_channels: int = 96
+    image_channels: tuple[int, int, int, int] = (16, 32, 48, 64)
+    latent_dim: int = LATENT_DIM
+    decoder_hidden: int = 64
+
+    def to_dict(self) -> dict:
+        """JSON-serialisable form."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "ModelConfig":
+        """Inverse of :meth:`to_dict`."""
+        data = dict(data)
+        data["image_channels"] = tuple(data["image_channels"])
+        return cls(**data)
+
+
+def _strided_length(lengths: torch.Tensor) -> torch.Tensor:
+    """Output length of the ENCODER_STRIDE downsampling (two 'same'-padded stride-2 stages)."""
+    out = lengths
+    for _ in range(ENCODER_STRIDE.bit_length() - 1):
+        out = torch.div(out + 1, 2, rounding_mode="floor")
+    return out
+
+
+class _Residual1d(nn.Module):
+    def __init__(self, channels: int, dilation: int) -> None:
+        super().__init__()
+        self.conv = nn.Conv1d(channels, channels, 3, padding=dilation, dilation=dilation)
+        self.norm = nn.BatchNorm1d(channels)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + torch.relu(self.norm(self.conv(x)))
+
+
+class AudioEncoder(nn.Module):
+    """1-D convolutions over (B, N_MELS, T) log-mel features -> (B, C, T / ENCODER_STRIDE)."""
+
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.Conv1d(N_MELS, channels, 5, stride=2, padding=2), nn.BatchNorm1d(channels), nn.ReLU(),
+            nn.Conv1d(channels, channels, 5, stride=2, padding=2), nn.BatchNorm1d(channels), nn.ReLU(),
+            _Residual1d(channels, 1), _Residual1d(channels, 2), _Residual1d(channels, 4),
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+
+class ImageEncoder(nn.Module):
+    """2-D convolutions over (B, 1, IMAGE_HEIGHT, W) strips -> (B, C, W / ENCODER_STRIDE).
+
+    Two stride-2 convolutions bring the strip to (IMAGE_HEIGHT/4, W/4); two more halve only the height; a final
+    full-height convolution collapses it into a left-to-right sequence with 1-D context on top.
+    """
+
+    def __init__(self, channels: tuple[int, int, int, int]) -> None:
+        super().__init__()
+        c1, c2, c3, c4 = channels
+
+        def block(cin: int, cout: int, stride: tuple[int, int] = (1, 1)) -> list[nn.Module]:
+            return [nn.Conv2d(cin, cout, 3, stride=stride, padding=1), nn.BatchNorm2d(cout), nn.ReLU()]
+
+        remaining = IMAGE_HEIGHT // 16
+        self.net = nn.Sequential(
+            *block(1, c1, (2, 2)), *block(c1, c2, (2, 2)),
+            *block(c2, c3), nn.MaxPool2d((2, 1)), *block(c3, c4), nn.MaxPool2d((2, 1)),
+            nn.Conv2d(c4, c4, (remaining, 3), padding=(0, 1)), nn.BatchNorm2d(c4), nn.ReLU(),
+        )
+        self.context = nn.Sequential(nn.Conv1d(c4, c4, 5, padding=2), nn.BatchNorm1d(c4), nn.ReLU())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.context(self.net(x).squeeze(2))
+
+
+class InstructionModel(nn.Module):
+    """Encoders + shared projection into Φ + shared CTC decoder.
+
+    :param config: network sizes.
+    """
+
+    def __init__(self, config: ModelConfig = ModelConfig()) -> None:
+        super().__init__()
+        self.config = config
+        self.encoders = nn.ModuleDict({
+            "audio": AudioEncoder(config.audio_channels),
+            "image": ImageEncoder(config.image_channels),
+        })
+        self.adapters = nn.ModuleDict({
+            "audio": nn.Conv1d(config.audio_channels, config.latent_dim, 1),
+            "image": nn.Conv1d(config.image_channels[-1], config.latent_dim, 1),
+        })
+        self.projection = nn.Sequential(nn.Linear(config.latent_dim, config.latent_dim), nn.LayerNorm(config.latent_dim))
+        self.decoder = nn.Sequential(nn.Linear(config.latent_dim, config.decoder_hidden), nn.ReLU(),
+                                     nn.Linear(config.decoder_hidden, VOCAB_SIZE))
+
+    def encode(self, modality: str, inputs: torch.Tensor, lengths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Map a batch of one modality into Φ.
+
+        :param modality: "audio" (inputs (B, N_MELS, T)) or "image" (inputs (B, 1, IMAGE_HEIGHT, W)).
+        :param lengths: valid frames (audio) or columns (image) per item.
+        :return: Φ (B, T', LATENT_DIM) and valid latent lengths (B,).
+        """
+        if modality not in MODALITIES:
+            raise ValueError(f"unknown modality {modality!r}; choose from {MODALITIES}")
+        features = self.adapters[modality](self.encoders[modality](inputs))
+        phi = self.projection(features.transpose(1, 2))
+        return phi, torch.clamp(_strided_length(lengths), min=1, max=phi.shape[1])
+
+    def decode(self, phi: torch.Tensor) -> torch.Tensor:
+        """CTC logits (..., VOCAB_SIZE) of Φ vectors (any leading shape).
+
+        :param phi: latent vectors (..., LATENT_DIM).
+        """
+        return self.decoder(phi)

@@ -1,0 +1,179 @@
+"""Speech synthesis of spoken instructions with espeak-ng (via ``espeakng-loader`` and ctypes).
+
+This is the only module that touches espeak-ng (GPL-3.0-or-later). It is used to *generate training and test data*
+only; nothing of espeak is vendored, and the trained model and inference path never import it.
+The library keeps internal state, so repeated calls in one process are not bit-identical: run each fixed-size shard
+of a dataset in a fresh process (see :mod:`vafn_gym.multimedia.dataset`) to make generation reproducible.
+"""
+
+from __future__ import annotations
+
+import ctypes
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+
+#: Number words for arm ids (index = arm id).
+NUMBER_WORDS: tuple[str, ...] = ("zero", "one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten")
+#: Phrasings of a non-empty instruction; ``{0}``, ``{1}``… are replaced by the joined number words.
+TEMPLATES: tuple[tuple[str, str, str], ...] = (
+    # (prefix, separator, suffix)
+    ("", " ", ""),
+    ("", ", ", ""),
+    ("arm ", ", then ", ""),
+    ("arm ", ", arm ", ""),
+    ("", " then ", ""),
+    ("arms ", " ", ""),
+    ("move arm ", ", then arm ", ""),
+    ("", ", ", " please"),
+)
+#: Phrasings of the empty instruction.
+EMPTY_PHRASES: tuple[str, ...] = ("none", "nothing", "no arms", "empty instruction", "hold", "stop")
+
+#: English voices and variants; held-out ones never appear in the training split.
+TRAIN_VOICES: tuple[str, ...] = ("en-us", "en", "en-gb-x-rp", "en-gb-x-gbclan", "en-029")
+HELDOUT_VOICES: tuple[str, ...] = ("en-us-nyc", "en-gb-scotland", "en-gb-x-gbcwmd")
+TRAIN_VARIANTS: tuple[str, ...] = (
+    "", "m1", "m2", "m4", "m6", "m7", "f1", "f2", "f4", "klatt", "klatt2", "klatt4",
+    "Andy", "david", "john", "max", "steph", "adam", "belinda", "robert", "whisper", "caleb",
+)
+HELDOUT_VARIANTS: tuple[str, ...] = ("m3", "m5", "f3", "f5", "klatt3", "linda", "steph2", "edward", "Alex")
+#: Ranges of espeak parameters sampled per utterance (inclusive).
+RATE_RANGE: tuple[int, int] = (130, 260)
+PITCH_RANGE: tuple[int, int] = (15, 85)
+INTONATION_RANGE: tuple[int, int] = (10, 90)
+WORDGAP_RANGE: tuple[int, int] = (0, 2)
+#: Sample rate espeak-ng synthesises at.
+ESPEAK_SAMPLE_RATE: int = 22_050
+
+# espeak-ng API constants.
+_AUDIO_OUTPUT_SYNCHRONOUS = 2
+_INITIALIZE_DONT_EXIT = 0x8000
+_POS_CHARACTER = 1
+_CHARS_UTF8 = 1
+_NOISE_SEED = 12345
+_PARAM_RATE, _PARAM_PITCH, _PARAM_RANGE, _PARAM_WORDGAP = 1, 3, 4, 7
+
+
+def phrase(arms: Sequence[int], template: int = 0, empty_phrase: int = 0) -> str:
+    """Text a user could say for ``arms`` (e.g. ``"arm two, then three"``).
+
+    :param arms: 1-based arm ids.
+    :param template: index into :data:`TEMPLATES` (non-empty instructions).
+    :param empty_phrase: index into :data:`EMPTY_PHRASES` (empty instruction).
+    """
+    if not arms:
+        return EMPTY_PHRASES[empty_phrase % len(EMPTY_PHRASES)]
+    prefix, separator, suffix = TEMPLATES[template % len(TEMPLATES)]
+    return prefix + separator.join(NUMBER_WORDS[arm] for arm in arms) + suffix
+
+
+@dataclass(frozen=True)
+class Voice:
+    """espeak-ng voice settings of one utterance."""
+
+    name: str = "en-us"
+    variant: str = ""
+    rate: int = 175
+    pitch: int = 50
+    intonation: int = 50
+    wordgap: int = 0
+
+    @property
+    def full_name(self) -> str:
+        """Name passed to ``espeak_SetVoiceByName`` (``voice+variant``)."""
+        return f"{self.name}+{self.variant}" if self.variant else self.name
+
+
+def sample_voice(rng: np.random.Generator, heldout: bool) -> Voice:
+    """Draw a random voice from the training or the held-out pool.
+
+    :param rng: random generator.
+    :param heldout: use held-out voices and variants (test split) instead of the training ones.
+    """
+    voices = HELDOUT_VOICES if heldout else TRAIN_VOICES
+    variants = HELDOUT_VARIANTS if heldout else TRAIN_VARIANTS
+    return Voice(
+        name=str(voices[rng.integers(len(voices))]),
+        variant=str(variants[rng.integers(len(variants))]),
+        rate=int(rng.integers(RATE_RANGE[0], RATE_RANGE[1] + 1)),
+        pitch=int(rng.integers(PITCH_RANGE[0], PITCH_RANGE[1] + 1)),
+        intonation=int(rng.integers(INTONATION_RANGE[0], INTONATION_RANGE[1] + 1)),
+        wordgap=int(rng.integers(WORDGAP_RANGE[0], WORDGAP_RANGE[1] + 1)),
+    )
+
+
+class EspeakSynthesizer:
+    """Thin ctypes wrapper around libespeak-ng in synchronous mode; one per process (the library is not thread-safe)."""
+
+    _instance: Optional["EspeakSynthesizer"] = None
+
+    def __init__(self) -> None:
+        try:
+            import espeakng_loader
+        except ImportError as error:  # pragma: no cover - depends on the optional extra
+            raise ImportError("speech synthesis needs the optional 'espeakng-loader' package: pip install vafn[media]") from error
+        callback_type = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.POINTER(ctypes.c_short), ctypes.c_int, ctypes.c_void_p)
+        lib = ctypes.CDLL(espeakng_loader.get_library_path())
+        lib.espeak_Initialize.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_char_p, ctypes.c_int]
+        lib.espeak_SetVoiceByName.argtypes = [ctypes.c_char_p]
+        lib.espeak_SetParameter.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int]
+        lib.espeak_Synth.argtypes = [
+            ctypes.c_void_p, ctypes.c_size_t, ctypes.c_uint, ctypes.c_int, ctypes.c_uint, ctypes.c_uint,
+            ctypes.POINTER(ctypes.c_uint), ctypes.c_void_p,
+        ]
+        rate = lib.espeak_Initialize(_AUDIO_OUTPUT_SYNCHRONOUS, 0, espeakng_loader.get_data_path().encode(), _INITIALIZE_DONT_EXIT)
+        if rate != ESPEAK_SAMPLE_RATE:
+            raise RuntimeError(f"espeak-ng initialised at {rate} Hz, expected {ESPEAK_SAMPLE_RATE}")
+        self._chunks: list[np.ndarray] = []
+
+        def _collect(wav, count, _events):  # noqa: ANN001 - ctypes callback
+            if wav and count > 0:
+                self._chunks.append(np.ctypeslib.as_array(wav, shape=(count,)).copy())
+            return 0
+
+        self._callback = callback_type(_collect)  # keep a reference: ctypes does not
+        lib.espeak_SetSynthCallback(self._callback)
+        self._lib = lib
+        self._seed_random = getattr(lib, "espeak_ng_SetRandSeed", None)
+        if self._seed_random is not None:
+            self._seed_random.argtypes = [ctypes.c_long]
+
+    @classmethod
+    def shared(cls) -> "EspeakSynthesizer":
+        """The process-wide synthesiser (created on first use)."""
+        if cls._instance is None:
+            cls._instance = cls()
+        return cls._instance
+
+    def synthesize(self, text: str, voice: Voice = Voice()) -> np.ndarray:
+        """Speak ``text`` with ``voice``; returns float32 samples in [-1, 1] at :data:`ESPEAK_SAMPLE_RATE`.
+
+        :param text: what to say.
+        :param voice: voice, variant, rate, pitch, intonation range and word gap.
+        """
+        if self._lib.espeak_SetVoiceByName(voice.full_name.encode()) != 0:
+            raise ValueError(f"espeak-ng does not know the voice {voice.full_name!r}")
+        for parameter, value in ((_PARAM_RATE, voice.rate), (_PARAM_PITCH, voice.pitch),
+                                 (_PARAM_RANGE, voice.intonation), (_PARAM_WORDGAP, voice.wordgap)):
+            self._lib.espeak_SetParameter(parameter, value, 0)
+        if self._seed_random is not None:
+            self._seed_random(_NOISE_SEED)  # breathy/whisper variants draw noise from espeak's PRNG
+        self._chunks.clear()
+        data = text.encode() + b"\0"
+        self._lib.espeak_Synth(data, len(data), 0, _POS_CHARACTER, 0, _CHARS_UTF8, None, None)
+        if not self._chunks:
+            return np.zeros(0, dtype=np.float32)
+        return np.concatenate(self._chunks).astype(np.float32) / 32768.0
+
+
+def speak(arms: Sequence[int], voice: Voice = Voice(), template: int = 0, empty_phrase: int = 0) -> np.ndarray:
+    """Synthesise a spoken instruction at :data:`ESPEAK_SAMPLE_RATE` (float32).
+
+    :param arms: 1-based arm ids.
+    :param voice: espeak voice settings.
+    :param template: phrasing template index.
+    :param empty_phrase: phrasing of the empty instruction.
+    """
+    return EspeakSynthesizer.shared().synthesize(phrase(arms, template, empty_phrase), voice)

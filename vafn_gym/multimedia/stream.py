@@ -1,0 +1,185 @@
+"""The asynchronous multimedia stream: a background thread transcribes submitted media into the instruction queue."""
+
+from __future__ import annotations
+
+import itertools
+import queue as _queue
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Optional
+
+from vafn_gym.multimedia.constants import LOW_CONFIDENCE
+
+#: How long the worker waits for a request before re-checking for shutdown (seconds).
+_POLL_SECONDS = 0.05
+
+
+@dataclass(frozen=True)
+class StreamEvent:
+    """What happened to one submitted request.
+
+    :param ticket: the id returned by :meth:`MultimediaStream.submit`.
+    :param status: "enqueued", "rejected" (low confidence), or "error" (bad input, full queue, …).
+    :param message: the reason for a rejection or an error ("" when enqueued).
+    :param transcription: the generator's result, when there was one.
+    :param latency_s: submit -> enqueue (or -> failure) wall time, seconds.
+    """
+
+    ticket: int
+    status: str
+    message: str = ""
+    transcription: Any = None
+    latency_s: float = 0.0
+
+
+@dataclass
+class _Request:
+    ticket: int
+    submitted_at: float
+    kwargs: dict
+    metadata: dict = field(default_factory=dict)
+
+
+class MultimediaStream:
+    """Runs an :class:`InstructionGenerator` on a background thread and enqueues results into an ``InstructionQueue``.
+
+    Each entry's ``source`` is the modalities that produced it (``"audio"``, ``"image"``, ``"audio+image"``,
+    ``"code"``) and its ``metadata`` holds ``latency_s`` (submit -> enqueue), ``transcribe_s``, ``confidence``,
+    ``confidences``, ``method``, ``warnings`` and ``ticket``. Results below ``min_confidence`` are not enqueued but
+    reported as "rejected"; bad input and a full queue are reported as "error". The thread never dies on bad input.
+
+    :param instruction_queue: the destination ``vafn_gym.queue.InstructionQueue``.
+    :param generator: the generator (default: the packaged checkpoint).
+    :param min_confidence: results with a lower sequence confidence are rejected (0 disables).
+    :param reject_flagged: also reject results the generator flagged ``low_confidence`` (warnings, disagreement);
+        with False they are enqueued and the flag stays in the metadata.
+    :param on_event: optional callback called (on the worker thread) with every :class:`StreamEvent`.
+    :param max_pending: bound of the request backlog; ``submit`` raises ``queue.Full`` beyond it.
+    """
+
+    def __init__(self, instruction_queue: Any, generator: Any = None, min_confidence: float = LOW_CONFIDENCE,
+                 reject_flagged: bool = True, on_event: Optional[Callable[[StreamEvent], None]] = None, max_pending: int = 256) -> None:
+        if generator is None:
+            from vafn_gym.multimedia.generator import InstructionGenerator
+
+            generator = InstructionGenerator.load()
+        self.queue = instruction_queue
+        self.generator = generator
+        self.min_confidence = float(min_confidence)
+        self.reject_flagged = bool(reject_flagged)
+        self.on_event = on_event
+        self.events: list[StreamEvent] = []
+        self._requests: "_queue.Queue[_Request]" = _queue.Queue(max_pending)
+        self._tickets = itertools.count()
+        self._stop = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+        self._lock = threading.Lock()
+
+    # --- lifecycle ---
+    def start(self) -> "MultimediaStream":
+        """Start the worker thread (idempotent)."""
+        if self._thread is None or not self._thread.is_alive():
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._run, name="vafn-multimedia-stream", daemon=True)
+            self._thread.start()
+        return self
+
+    def stop(self, drain: bool = True, timeout: Optional[float] = None) -> None:
+        """Stop the worker; with ``drain`` it first finishes every pending request.
+
+        :param drain: process the backlog before stopping.
+        :param timeout: seconds to wait for the thread.
+        """
+        if drain:
+            self._requests.join()
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def __enter__(self) -> "MultimediaStream":
+        return self.start()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()
+
+    @property
+    def alive(self) -> bool:
+        """Whether the worker thread is running."""
+        return self._thread is not None and self._thread.is_alive()
+
+    # --- producer side ---
+    def submit(self, audio: Any = None, image: Any = None, code: Any = None, sample_rate: Optional[int] = None,
+               metadata: Optional[dict] = None) -> int:
+        """Queue media for transcription; returns a ticket. Arrival time is taken now.
+
+        :param audio: audio path / waveform / (waveform, rate).
+        :param image: image path / array.
+        :param code: machine code.
+        :param sample_rate: rate of a bare waveform.
+        :param metadata: extras copied into the queue entry's metadata.
+        """
+        ticket = next(self._tickets)
+        kwargs = {"audio": audio, "image": image, "code": code, "sample_rate": sample_rate}
+        self._requests.put_nowait(_Request(ticket, time.perf_counter(), kwargs, dict(metadata or {})))
+        return ticket
+
+    def wait(self, timeout: Optional[float] = None) -> bool:
+        """Block until every submitted request was handled (or ``timeout`` seconds passed); True when drained.
+
+        :param timeout: seconds, None for no limit.
+        """
+        deadline = None if timeout is None else time.perf_counter() + timeout
+        while self._requests.unfinished_tasks:
+            if deadline is not None and time.perf_counter() > deadline:
+                return False
+            time.sleep(0.005)
+        return True
+
+    # --- worker ---
+    def _record(self, event: StreamEvent) -> None:
+        with self._lock:
+            self.events.append(event)
+        if self.on_event is not None:
+            try:
+                self.on_event(event)
+            except Exception:  # a faulty callback must not kill the stream
+                pass
+
+    def _handle(self, request: _Request) -> StreamEvent:
+        started = time.perf_counter()
+        try:
+            result = self.generator.transcribe(**request.kwargs)
+        except Exception as error:  # bad input of any kind becomes an event, never a dead thread
+            return StreamEvent(request.ticket, "error", f"{type(error).__name__}: {error}",
+                               latency_s=time.perf_counter() - request.submitted_at)
+        transcribe_s = time.perf_counter() - started
+        if result.confidence < self.min_confidence or (self.reject_flagged and result.low_confidence):
+            reasons = "; ".join(result.warnings) or f"below {self.min_confidence:.2f}"
+            return StreamEvent(request.ticket, "rejected", f"low confidence {result.confidence:.2f}: {reasons}",
+                               result, time.perf_counter() - request.submitted_at)
+        metadata = {**request.metadata, "ticket": request.ticket, "transcribe_s": transcribe_s,
+                    "confidence": result.confidence, "confidences": list(result.confidences),
+                    "low_confidence": result.low_confidence, "method": result.method,
+                    "warnings": list(result.warnings), "submitted_at": request.submitted_at}
+        try:
+            latency = time.perf_counter() - request.submitted_at
+            metadata["latency_s"] = latency
+            self.queue.enqueue(result.instruction, source="+".join(result.modalities), metadata=metadata)
+        except Exception as error:  # QueueFullError, or anything the queue rejects
+            return StreamEvent(request.ticket, "error", f"{type(error).__name__}: {error}", result,
+                               time.perf_counter() - request.submitted_at)
+        return StreamEvent(request.ticket, "enqueued", "", result, latency)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                request = self._requests.get(timeout=_POLL_SECONDS)
+            except _queue.Empty:
+                continue
+            try:
+                self._record(self._handle(request))
+            except Exception as error:  # last line of defence
+                self._record(StreamEvent(request.ticket, "error", f"{type(error).__name__}: {error}"))
+            finally:
+                self._requests.task_done()

@@ -1,0 +1,233 @@
+"""Training command of the packaged model: ``python -m vafn_gym.multimedia.train`` (CPU, one thread, ~15 min).
+
+Generates (or reuses) the seeded training data, then trains both encoders, the shared projection and the shared CTC
+decoder jointly with: CTC on audio Φ, CTC on image Φ, a token-level InfoNCE alignment between the audio and image
+Φ embeddings of the same instruction, and a fused-token loss that teaches the decoder to read Φ mixtures.
+TensorBoard logs (losses, accuracies) go to ``--logdir``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from vafn_gym.multimedia.constants import BLANK
+
+#: Default paths of the packaged checkpoint (weights + JSON metadata).
+CHECKPOINT_DIR = Path(__file__).parent / "checkpoints"
+CHECKPOINT_NAME = "instruction_model"
+
+
+def _greedy_arms(logits, lengths) -> list[list[int]]:
+    """Best-path CTC decode of a batch (numpy, collapse repeats, drop blanks)."""
+    best = logits.argmax(-1).numpy()
+    out = []
+    for row, length in zip(best, lengths.tolist()):
+        row = row[:length]
+        keep = np.ones(len(row), bool)
+        keep[1:] = row[1:] != row[:-1]
+        out.append([int(x) for x in row[keep] if x != BLANK])
+    return out
+
+
+def _peaks(logits, lengths) -> list[list[int]]:
+    """Frame index of the most probable frame of each emitted token of a greedy path."""
+    probs = logits.softmax(-1).detach().numpy()
+    best = probs.argmax(-1)
+    peaks = []
+    for row, p, length in zip(best, probs, lengths.tolist()):
+        items, t = [], 0
+        while t < length:
+            end = t + 1
+            while end < length and row[end] == row[t]:
+                end += 1
+            if row[t] != BLANK:
+                items.append(t + int(np.argmax(p[t:end, row[t]])))
+            t = end
+        peaks.append(items)
+    return peaks
+
+
+def alignment_losses(model, phi_a, logits_a, len_a, phi_v, logits_v, len_v, targets, target_lengths, temperature, rng):
+    """Token-level InfoNCE between audio and image Φ tokens of the same instruction, and a fused-token CE loss.
+
+    Only items whose greedy readings in both modalities equal the label contribute (their token positions are then
+    known without forced alignment).
+
+    :return: (infonce, fused_ce, number of aligned tokens)
+    """
+    import torch
+    import torch.nn.functional as F
+
+    reads_a, reads_v = _greedy_arms(logits_a.detach(), len_a), _greedy_arms(logits_v.detach(), len_v)
+    peaks_a, peaks_v = _peaks(logits_a, len_a), _peaks(logits_v, len_v)
+    rows_a, cols_a, rows_v, cols_v, labels = [], [], [], [], []
+    for b in range(len(targets)):
+        label = targets[b, : int(target_lengths[b])].tolist()
+        if label and reads_a[b] == label and reads_v[b] == label:
+            rows_a += [b] * len(label)
+            cols_a += peaks_a[b]
+            rows_v += [b] * len(label)
+            cols_v += peaks_v[b]
+            labels += label
+    if len(labels) < 2:
+        zero = phi_a.sum() * 0.0
+        return zero, zero, 0
+    tokens_a = phi_a[rows_a, cols_a]
+    tokens_v = phi_v[rows_v, cols_v]
+    za, zv = F.normalize(tokens_a, dim=-1), F.normalize(tokens_v, dim=-1)
+    similarity = za @ zv.T / temperature
+    target = torch.arange(len(labels))
+    infonce = 0.5 * (F.cross_entropy(similarity, target) + F.cross_entropy(similarity.T, target))
+    alpha = torch.from_numpy(rng.uniform(0.0, 1.0, (len(labels), 1)).astype(np.float32))
+    fused = alpha * tokens_a + (1.0 - alpha) * tokens_v
+    fused_ce = F.cross_entropy(model.decode(fused), torch.tensor(labels))
+    return infonce, fused_ce, len(labels)
+
+
+def evaluate(model, data, batch_size: int = 64) -> dict[str, float]:
+    """Exact-match greedy accuracy of each modality on clean cached items.
+
+    :param model: the network (set to eval mode here).
+    :param data: cached items.
+    :param batch_size: evaluation batch size.
+    """
+    import torch
+
+    from vafn_gym.multimedia.batching import make_batch
+
+    model.eval()
+    correct = {"audio": 0, "image": 0}
+    with torch.inference_mode():
+        for start in range(0, len(data), batch_size):
+            indices = np.arange(start, min(len(data), start + batch_size))
+            batch = make_batch(data, indices, None)
+            for modality in correct:
+                phi, lengths = model.encode(modality, batch[modality], batch[f"{modality}_lengths"])
+                reads = _greedy_arms(model.decode(phi), lengths)
+                for b, read in enumerate(reads):
+                    correct[modality] += read == batch["targets"][b, : int(batch["target_lengths"][b])].tolist()
+    model.train()
+    return {modality: count / len(data) for modality, count in correct.items()}
+
+
+def _cpu_seconds() -> float:
+    """CPU time (user + system) of this process and its finished children (the data-generation workers)."""
+    import resource
+
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    """Command-line options of the training command."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--train-items", type=int, default=6000, help="training items (speech + strip pairs)")
+    parser.add_argument("--val-items", type=int, default=500, help="validation items per split (test, heldout)")
+    parser.add_argument("--steps", type=int, default=2500, help="optimisation steps")
+    parser.add_argument("--batch-size", type=int, default=48)
+    parser.add_argument("--lr", type=float, default=3e-3)
+    parser.add_argument("--align-weight", type=float, default=0.2, help="weight of the InfoNCE alignment loss")
+    parser.add_argument("--fused-weight", type=float, default=0.2, help="weight of the fused-token loss")
+    parser.add_argument("--temperature", type=float, default=0.1)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--workers", type=int, default=2, help="data-generation processes")
+    parser.add_argument("--eval-every", type=int, default=500)
+    parser.add_argument("--out", type=Path, default=CHECKPOINT_DIR)
+    parser.add_argument("--logdir", type=Path, default=Path("runs") / "multimedia")
+    parser.add_argument("--cache-dir", type=Path, default=None)
+    return parser.parse_args(argv)
+
+
+def main(argv=None) -> dict:
+    """Generate data, train, write ``<out>/instruction_model.pt`` + ``.json``; returns the metadata."""
+    args = parse_args(argv)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    import torch
+    import torch.nn.functional as F
+    from torch.utils.tensorboard import SummaryWriter
+    from tqdm import tqdm
+
+    from vafn_gym.multimedia.batching import bucketed_batches, make_batch
+    from vafn_gym.multimedia.dataset import DEFAULT_CACHE, build_cache
+    from vafn_gym.multimedia.model import InstructionModel, ModelConfig
+
+    torch.set_num_threads(1)
+    torch.manual_seed(args.seed)
+    rng = np.random.default_rng(args.seed)
+    started = time.time()
+    cache = args.cache_dir or DEFAULT_CACHE
+    train = build_cache(args.seed, "train", args.train_items, cache, args.workers)
+    validation = {split: build_cache(args.seed, split, args.val_items, cache, args.workers) for split in ("test", "heldout")}
+    data_seconds = time.time() - started
+
+    config = ModelConfig()
+    model = InstructionModel(config)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
+    scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=args.lr, total_steps=args.steps, pct_start=0.1)
+    writer = SummaryWriter(str(args.logdir))
+    history = []
+    bar = tqdm(range(1, args.steps + 1), desc="training", unit="step")
+    queue: list = []
+    for step in bar:
+        if not queue:
+            queue = bucketed_batches(train, args.batch_size, rng)
+        batch = make_batch(train, queue.pop(), rng)
+        targets, target_lengths = batch["targets"], batch["target_lengths"]
+        flat_targets = torch.cat([targets[b, : int(target_lengths[b])] for b in range(len(targets))])
+        losses, outputs = {}, {}
+        for modality in ("audio", "image"):
+            phi, lengths = model.encode(modality, batch[modality], batch[f"{modality}_lengths"])
+            logits = model.decode(phi)
+            log_probs = logits.log_softmax(-1).transpose(0, 1)
+            losses[f"ctc_{modality}"] = F.ctc_loss(log_probs, flat_targets, lengths, target_lengths, blank=BLANK,
+                                                   zero_infinity=True)
+            outputs[modality] = (phi, logits, lengths)
+        infonce, fused_ce, aligned = alignment_losses(model, *outputs["audio"], *outputs["image"], targets, target_lengths,
+                                                      args.temperature, rng)
+        losses["infonce"], losses["fused_ce"] = infonce, fused_ce
+        total = losses["ctc_audio"] + losses["ctc_image"] + args.align_weight * infonce + args.fused_weight * fused_ce
+        optimizer.zero_grad()
+        total.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+        optimizer.step()
+        scheduler.step()
+        for name, value in losses.items():
+            writer.add_scalar(f"loss/{name}", float(value.detach()), step)
+        writer.add_scalar("loss/total", float(total.detach()), step)
+        writer.add_scalar("train/aligned_tokens", aligned, step)
+        bar.set_postfix(audio=f"{float(losses['ctc_audio']):.3f}", image=f"{float(losses['ctc_image']):.3f}",
+                        nce=f"{float(infonce):.2f}")
+        if step % args.eval_every == 0 or step == args.steps:
+            metrics = {split: evaluate(model, data) for split, data in validation.items()}
+            for split, accuracies in metrics.items():
+                for modality, accuracy in accuracies.items():
+                    writer.add_scalar(f"accuracy_{split}/{modality}", accuracy, step)
+            history.append({"step": step, **{f"{s}/{m}": a for s, acc in metrics.items() for m, a in acc.items()}})
+            tqdm.write(f"step {step}: {history[-1]}")
+    writer.close()
+    args.out.mkdir(parents=True, exist_ok=True)
+    model.eval()
+    state = {name: tensor.detach().clone() for name, tensor in model.state_dict().items()}
+    torch.save(state, args.out / f"{CHECKPOINT_NAME}.pt")
+    metadata = {
+        "config": config.to_dict(),
+        "command": "python -m vafn_gym.multimedia.train " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
+        "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items() if k not in ("out", "logdir", "cache_dir")},
+        "data_seconds": round(data_seconds, 1),
+        "total_seconds": round(time.time() - started, 1),
+        "cpu_seconds": round(_cpu_seconds(), 1),
+        "torch": torch.__version__,
+        "validation": history,
+    }
+    (args.out / f"{CHECKPOINT_NAME}.json").write_text(json.dumps(metadata, indent=2))
+    return metadata
+
+
+if __name__ == "__main__":
+    main()
