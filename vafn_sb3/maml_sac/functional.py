@@ -89,11 +89,35 @@ def min_q(critic: nn.Module, params: Params, obs: torch.Tensor, actions: torch.T
 
 
 def critic_regression_loss(
-    critic_params: Params, critic: nn.Module, obs: torch.Tensor, actions: torch.Tensor, targets: torch.Tensor
+    critic_params: Params,
+    critic: nn.Module,
+    obs: torch.Tensor,
+    actions: torch.Tensor,
+    targets: torch.Tensor,
+    centered: bool = False,
 ) -> torch.Tensor:
-    """SB3's critic loss ``0.5 * sum_heads MSE(Q_j(s, a), y)`` for fixed targets ``y`` of shape ``(batch,)``."""
+    """SB3's critic loss ``0.5 * sum_heads MSE(Q_j(s, a), y)`` for fixed targets ``y`` of shape ``(batch,)``.
+
+    With ``centered`` both sides are centred over the batch first, so only the *relative* values are regressed: a
+    task-independent offset between the critic and the n-step targets (e.g. the critic's overestimation) then neither
+    dominates nor destabilises the inner step, and the actor step, which only reads ``∇_a Q``, loses nothing.
+    """
     q_values = functional_call(critic, critic_params, (obs, actions))
-    return 0.5 * sum(nn.functional.mse_loss(q.squeeze(-1), targets) for q in q_values)
+    if centered:
+        targets = targets - targets.mean()
+        q_values = [q.squeeze(-1) - q.mean() for q in q_values]
+    else:
+        q_values = [q.squeeze(-1) for q in q_values]
+    return 0.5 * sum(nn.functional.mse_loss(q, targets) for q in q_values)
+
+
+def clip_gradients(grads: Params, max_norm: float | None) -> Params:
+    """Scale a gradient dict to global L2 norm at most ``max_norm`` (differentiable; ``None`` leaves it unchanged)."""
+    if max_norm is None:
+        return grads
+    norm = torch.sqrt(sum(g.pow(2).sum() for g in grads.values()))
+    scale = torch.clamp(max_norm / (norm + 1e-6), max=1.0)
+    return {name: g * scale for name, g in grads.items()}
 
 
 def actor_loss(
@@ -122,6 +146,8 @@ def inner_adapt(
     critic_lr: torch.Tensor,
     steps: int,
     second_order: bool,
+    max_grad_norm: float | None = None,
+    centered: bool = False,
 ) -> tuple[Params, Params]:
     """``steps`` rounds of (critic SGD step on the support targets, then actor SGD step against the adapted critic).
 
@@ -137,16 +163,16 @@ def inner_adapt(
     :param critic_lr: inner step size of the critic.
     :param steps: number of inner rounds K (0 returns the inputs).
     :param second_order: keep the inner gradients' graph (true MAML) instead of detaching them (first-order MAML).
+    :param max_grad_norm: clip each inner gradient (critic and actor separately) to this global norm.
+    :param centered: regress centred values in the inner critic loss (see :func:`critic_regression_loss`).
     :return: adapted ``(actor_params, critic_params)``.
     """
     for _ in range(steps):
-        critic_grads = grad(critic_regression_loss)(critic_params, critic, obs, actions, targets)
-        if not second_order:
-            critic_grads = detached(critic_grads)
+        critic_grads = grad(critic_regression_loss)(critic_params, critic, obs, actions, targets, centered)
+        critic_grads = clip_gradients(critic_grads if second_order else detached(critic_grads), max_grad_norm)
         critic_params = {name: p - critic_lr * critic_grads[name] for name, p in critic_params.items()}
         actor_grads = grad(actor_loss)(actor_params, actor, critic, critic_params, obs, ent_coef)
-        if not second_order:
-            actor_grads = detached(actor_grads)
+        actor_grads = clip_gradients(actor_grads if second_order else detached(actor_grads), max_grad_norm)
         actor_params = {name: p - actor_lr * actor_grads[name] for name, p in actor_params.items()}
     return actor_params, critic_params
 
@@ -165,6 +191,8 @@ def query_losses(
     steps: int,
     gamma: float,
     second_order: bool,
+    max_grad_norm: float | None = None,
+    centered: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One task's meta-objective: adapt on the support set, then SAC's critic and actor losses of θ', φ' on the query.
 
@@ -185,11 +213,13 @@ def query_losses(
     :param steps: inner rounds K.
     :param gamma: discount factor.
     :param second_order: differentiate through the inner step.
+    :param max_grad_norm: inner gradient clipping (see :func:`inner_adapt`).
+    :param centered: centred inner critic loss (see :func:`critic_regression_loss`).
     :return: ``(critic_loss, actor_loss, mean log π of the adapted actor on query states (detached))``.
     """
     adapted_actor, adapted_critic = inner_adapt(
         actor, critic, actor_params, critic_params, support["observations"], support["actions"], support["targets"],
-        ent_coef, actor_lr, critic_lr, steps, second_order,
+        ent_coef, actor_lr, critic_lr, steps, second_order, max_grad_norm, centered,
     )
     with torch.no_grad():
         next_actions, next_log_prob = sample_action(actor, detached(adapted_actor), query["next_observations"])

@@ -107,6 +107,9 @@ class MAMLSAC(SAC):
     :param inner_critic_lr: initial inner step size of the critic.
     :param inner_n_step: rewards summed in the inner critic targets (1 = TD, ``None`` = Monte Carlo to the episode end);
         tails bootstrap from the target critic and the meta-actor.
+    :param inner_max_grad_norm: clip every inner gradient (critic and actor separately) to this norm; ``None``: no clip.
+        Unclipped, the inner critic step can explode when the critic's scale is off (measured: gradient norm ~1700).
+    :param inner_centered_critic: regress centred values in the inner critic loss (only relative values adapt).
     :param learn_inner_lr: meta-learn the two inner step sizes (log-parameterised, own Adam optimiser).
     :param inner_lr_learning_rate: learning rate of that optimiser.
     :param second_order: differentiate through the inner step (``create_graph``); default first-order MAML.
@@ -140,6 +143,8 @@ class MAMLSAC(SAC):
         inner_actor_lr: float = 0.01,
         inner_critic_lr: float = 0.005,
         inner_n_step: int | None = 10,
+        inner_max_grad_norm: float | None = 10.0,
+        inner_centered_critic: bool = True,
         learn_inner_lr: bool = True,
         inner_lr_learning_rate: float = 1e-3,
         second_order: bool = False,
@@ -176,6 +181,10 @@ class MAMLSAC(SAC):
         self.inner_actor_lr = float(inner_actor_lr)
         self.inner_critic_lr = float(inner_critic_lr)
         self.inner_n_step = inner_n_step
+        if inner_max_grad_norm is not None and inner_max_grad_norm <= 0:
+            raise ValueError(f"inner_max_grad_norm must be > 0 or None, got {inner_max_grad_norm}")
+        self.inner_max_grad_norm = None if inner_max_grad_norm is None else float(inner_max_grad_norm)
+        self.inner_centered_critic = bool(inner_centered_critic)
         self.learn_inner_lr = bool(learn_inner_lr)
         self.inner_lr_learning_rate = float(inner_lr_learning_rate)
         self.second_order = bool(second_order)
@@ -291,6 +300,7 @@ class MAMLSAC(SAC):
                     parameters_of(self.actor_distribution, detach=True), parameters_of(self.critic, detach=True),
                     tensors["observations"][i], tensors["actions"][i], targets[i],
                     ent_coef, actor_lr, critic_lr, steps, second_order=False,
+                    max_grad_norm=self.inner_max_grad_norm, centered=self.inner_centered_critic,
                 )
                 adapted.append((detached(actor_params), detached(critic_params)))
         return adapted
@@ -391,6 +401,7 @@ class MAMLSAC(SAC):
                 return query_losses(
                     self.actor_distribution, self.critic, actor_params, critic_params, target_params, task_support,
                     task_query, ent_coef, actor_lr, critic_lr, self.inner_steps, self.gamma, self.second_order,
+                    self.inner_max_grad_norm, self.inner_centered_critic,
                 )
 
             inner_support = {k: support[k] for k in ("observations", "actions", "targets")}
