@@ -16,7 +16,7 @@ from vafn_gym.constants import ACTION_DIM, OBS_DIM
 from vafn_gym.tasks import TaskSampler
 from vafn_sb3.common.adaptation import Adaptable, SupportSet, collect_support, evaluate_adaptation
 from vafn_sb3.maml_sac import MAMLSAC
-from vafn_sb3.maml_sac.functional import ActorDistribution, inner_adapt, parameters_of, query_losses
+from vafn_sb3.maml_sac.functional import clip_gradients, inner_adapt, parameters_of, query_losses
 
 ENV_ID = "VAFN/ThreeArmReachHidden-v0"
 #: Short episodes so that CI-sized rollouts contain complete episodes.
@@ -217,3 +217,23 @@ def test_evaluate_adaptation_rows(model):
                                env_kwargs=ENV_KWARGS)
     assert [(r["task_index"], r["k"]) for r in rows] == [(0, 0), (0, 2), (1, 0), (1, 2)]
     assert all(0.0 <= r["success_rate"] <= 1.0 and np.isfinite(r["return_mean"]) for r in rows)
+
+
+def test_inner_step_is_bounded_when_the_critic_scale_is_off(model):
+    """Regression: with targets far from Q, an unclipped, uncentred inner step moved Q by orders of magnitude."""
+    batch = random_batch(32, torch.Generator().manual_seed(3))
+    targets = 1000.0 + batch["targets"]
+    actor0, critic0 = parameters_of(model.actor_distribution, True), parameters_of(model.critic, True)
+    lrs = (torch.tensor(0.01), torch.tensor(0.005))
+
+    def q_shift(max_norm, centered):
+        _, critic1 = inner_adapt(model.actor_distribution, model.critic, actor0, critic0, batch["observations"],
+                                 batch["actions"], targets, torch.tensor(0.1), *lrs, 1, False, max_norm, centered)
+        q0 = functional_call(model.critic, critic0, (batch["observations"], batch["actions"]))[0]
+        q1 = functional_call(model.critic, critic1, (batch["observations"], batch["actions"]))[0]
+        return float((q1 - q0).abs().max())
+
+    assert q_shift(None, False) > 10.0  # the failure mode is real on this net
+    assert q_shift(1.0, True) < 1.0
+    grads = clip_gradients({"a": torch.full((3,), 10.0), "b": torch.full((4,), -10.0)}, 2.0)
+    assert abs(float(torch.sqrt(sum(g.pow(2).sum() for g in grads.values()))) - 2.0) < 1e-4
