@@ -27,7 +27,7 @@ ALL_ALGOS = ["sac", *VAFN_ALGOS]
 #: Per-family overrides that keep a test run to a few hundred steps (everything else comes from the YAML).
 FAST_PARAMS = {
     "mappo": ["n_steps:128", "batch_size:64", "n_epochs:1"],
-    "default": ["learning_starts:100", "batch_size:64"],
+    "default": ["learning_starts:200", "batch_size:64"],
 }
 FAST_ENV_KWARGS = ["max_length:1"]
 PYTHON = sys.executable
@@ -209,3 +209,45 @@ def test_enjoy_records_a_gif_of_the_scripted_controller(tmp_path: Path) -> None:
                            str(tmp_path / "a.gif"), "--env-kwargs", "render_width:160", "render_height:120"])
     assert episodes and episodes[0]["success"] == 1.0
     assert (tmp_path / "a.gif").stat().st_size > 5_000
+
+
+def test_meta_eval_callback_logs_post_adaptation_performance(tmp_path: Path) -> None:
+    import gymnasium as gym
+    from stable_baselines3.common.logger import configure
+
+    import vafn_gym  # noqa: F401
+    from vafn_sb3 import MTSAC
+    from vafn_sb3.callbacks import MetaEvalCallback
+
+    env = gym.make("VAFN/ThreeArmReachHidden-v0", max_length=1)
+    model = MTSAC("MlpPolicy", env, learning_starts=50, batch_size=32, policy_kwargs={"net_arch": [32, 32]}, seed=0)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    callback = MetaEvalCallback(eval_freq=60, k_values=(0, 2), n_tasks=1, n_support=16, max_length=1, seed=0)
+    model.learn(60, callback=callback)
+    assert [row["k"] for row in callback.rows] == [0, 2]
+    assert {row["timesteps"] for row in callback.rows} == {60}
+    assert callback.tasks[0].to_code() and len(callback.tasks) == 1
+    lines = (tmp_path / "meta_evaluations.csv").read_text().splitlines()
+    assert lines[0] == "timesteps,k,return,success,collision" and len(lines) == 3
+    logged = (tmp_path / "progress.csv").read_text().splitlines()[0].split(",")
+    assert {"meta/return_k0", "meta/success_k2", "meta/collision_k2"} <= set(logged)
+    with pytest.raises(ValueError, match="k_values"):
+        MetaEvalCallback(k_values=(-1,))
+
+
+def test_reproduce_smoke_writes_every_artefact(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [PYTHON, str(REPO_ROOT / "zoo" / "reproduce.py"), "--smoke", "--algos", "maml_sac", "mappo", "--jobs", "2",
+         "--work", str(tmp_path / "work"), "--out", str(tmp_path / "results")],
+        env=SUBPROCESS_ENV, capture_output=True, text=True, timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    out = tmp_path / "results"
+    for name in ("fig3_adaptation.png", "fig3_adaptation.csv", "fig3_adaptation_summary.csv", "fig4_online_maml_sac.png",
+                 "fig4_online_scripted.png", "training_return.png", "table1_smoke.md", "SUMMARY.md"):
+        assert (out / name).is_file(), f"{name} missing; stderr: {result.stderr[-2000:]}"
+    rows = (out / "fig3_adaptation.csv").read_text().splitlines()
+    assert len(rows) == 1 + 2 * 3, "one row per algorithm x K (1 task, 1 seed, K in 0, 1, 2)"
+    summary = (out / "SUMMARY.md").read_text()
+    assert "FAILED" not in summary and "Not produced" not in summary, summary
+    assert "| maml_sac |" in summary and "| scripted |" in summary and "Paper:" in summary

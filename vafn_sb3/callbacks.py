@@ -189,6 +189,8 @@ class MetaEvalCallback(BaseCallback):
             if self.verbose >= 1:
                 print(f"meta-eval K={k}: return {row['return']:.2f}, success {row['success']:.2f}, "
                       f"collision {row['collision']:.2f}")
+        # Dumped now (like EvalCallback) so the values are written at this timestep.
+        self.logger.dump(self.num_timesteps)
         self.rows.extend(summary)
         if self.log_path:
             self._append_csv(summary)
