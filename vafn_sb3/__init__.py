@@ -1,5 +1,6 @@
 """vafn_sb3: MAML-SAC, the MARL baselines and the online adaptive controller, as Stable-Baselines3 algorithms."""
 
+from vafn_sb3.callbacks import MetaEvalCallback, RolloutCollisionCallback, SuccessCollisionEvalCallback
 from vafn_sb3.common.adaptation import Adaptable, AdaptedPolicy, collect_support, evaluate_adaptation
 from vafn_sb3.maac import MAAC
 from vafn_sb3.maddpg import MADDPG
