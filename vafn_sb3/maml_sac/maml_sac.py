@@ -260,7 +260,10 @@ class MAMLSAC(SAC):
     def _support_tensors(self, supports: Sequence[SupportSet]) -> dict[str, torch.Tensor]:
         """Stack support sets (equal lengths) into ``(M, n, ...)`` tensors, with the n-step plan of their targets."""
         plans = [support.nstep_plan(self.gamma, self.inner_n_step) for support in supports]
-        as_tensor = lambda arrays, dtype=torch.float32: torch.as_tensor(np.stack(arrays), dtype=dtype, device=self.device)  # noqa: E731
+
+        def as_tensor(arrays: list[np.ndarray], dtype: torch.dtype = torch.float32) -> torch.Tensor:
+            return torch.as_tensor(np.stack(arrays), dtype=dtype, device=self.device)
+
         return {
             "observations": as_tensor([s.observations for s in supports]),
             "actions": as_tensor([self.policy.scale_action(s.actions) for s in supports]),
