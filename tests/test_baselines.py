@@ -22,18 +22,23 @@ SEED = 0
 EVAL_SEEDS = (100, 101, 102)
 TINY = [32, 32]
 OFF_POLICY_FAST = dict(learning_starts=500, batch_size=128, train_freq=4, gradient_steps=2, seed=SEED)
+#: SAC-family CI runs: a larger step size and a lower initial temperature than SB3's defaults (3e-4, "auto" from 1.0).
+SAC_FAST = dict(OFF_POLICY_FAST, learning_rate=1e-3, ent_coef="auto_0.1")
 
 #: Constructors of the CI-sized runs, with the number of env steps each trains for.
 ALGORITHMS = {
-    "MAPPO": (lambda env: MAPPO(env=env, n_steps=512, learning_rate=1e-3, policy_kwargs=dict(net_arch=TINY), seed=SEED), 3072),
+    "MAPPO": (
+        lambda env: MAPPO(env=env, n_steps=512, learning_rate=1e-3, policy_kwargs=dict(net_arch=TINY), seed=SEED),
+        3072,
+    ),
     # Two critic updates per actor update (TD3's delayed policy update): with MADDPG's 1:1 schedule the deterministic
     # actors saturate within this budget (seed 0: return -46 vs random -4); see the README, "Baselines".
     "MADDPG": (lambda env: MADDPG(env=env, policy_delay=2, policy_kwargs=dict(net_arch=TINY), **OFF_POLICY_FAST), 3000),
     "MAAC": (
-        lambda env: MAAC(env=env, policy_kwargs=dict(net_arch=dict(pi=TINY, qf=[32])), **OFF_POLICY_FAST),
+        lambda env: MAAC(env=env, policy_kwargs=dict(net_arch=dict(pi=TINY, qf=[32])), **SAC_FAST),
         3000,
     ),
-    "MTSAC": (lambda env: MTSAC("MlpPolicy", env=env, policy_kwargs=dict(net_arch=TINY), **OFF_POLICY_FAST), 3000),
+    "MTSAC": (lambda env: MTSAC("MlpPolicy", env=env, policy_kwargs=dict(net_arch=TINY), **SAC_FAST), 3000),
 }
 
 

@@ -89,8 +89,10 @@ class MADDPG(FineTuneAdaptation, TD3):
                 next_actions = self.actor_target(data.next_observations)
                 if self.target_policy_noise > 0:  # MATD3 target smoothing
                     noise = th.randn_like(next_actions) * self.target_policy_noise
-                    next_actions = (next_actions + noise.clamp(-self.target_noise_clip, self.target_noise_clip)).clamp(-1, 1)
-                next_q = th.cat(self.critic_target(data.next_observations, next_actions), dim=1).min(1, keepdim=True).values
+                    noise = noise.clamp(-self.target_noise_clip, self.target_noise_clip)
+                    next_actions = (next_actions + noise).clamp(-1, 1)
+                next_q = th.cat(self.critic_target(data.next_observations, next_actions), dim=1)
+                next_q = next_q.min(1, keepdim=True).values
                 target_q = data.rewards + (1 - data.dones) * discounts * next_q
             critic_loss = sum(F.mse_loss(q, target_q) for q in self.critic(data.observations, data.actions))
             clipped_step(critic_loss, self.critic.optimizer, critic_parameters, self.max_grad_norm)

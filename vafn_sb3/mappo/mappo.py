@@ -98,7 +98,9 @@ class MAPPO(FineTuneAdaptation, PPO):
         elif self.env is not None:
             rollout_size = self.n_steps * self.n_envs
             if rollout_size % num_mini_batch != 0 or rollout_size // num_mini_batch < 2:
-                raise ValueError(f"n_steps * n_envs ({rollout_size}) must split into {num_mini_batch} minibatches of >= 2")
+                raise ValueError(
+                    f"n_steps * n_envs ({rollout_size}) must split into {num_mini_batch} minibatches of >= 2 samples"
+                )
             self.batch_size = rollout_size // num_mini_batch
         if _init_setup_model:
             self._setup_model()
@@ -113,7 +115,8 @@ class MAPPO(FineTuneAdaptation, PPO):
         buffer.old_agent_log_prob = agent_log_prob.cpu().numpy().reshape(buffer.old_agent_log_prob.shape)
         buffer.old_normalized_values = values.cpu().numpy().reshape(buffer.old_normalized_values.shape)
         if self.normalize_advantage:
-            buffer.advantages = (buffer.advantages - buffer.advantages.mean()) / (buffer.advantages.std() + ADVANTAGE_EPS)
+            advantages = buffer.advantages
+            buffer.advantages = (advantages - advantages.mean()) / (advantages.std() + ADVANTAGE_EPS)
 
     def _huber(self, error: th.Tensor) -> th.Tensor:
         return F.huber_loss(error, th.zeros_like(error), reduction="none", delta=self.huber_delta)
@@ -123,10 +126,11 @@ class MAPPO(FineTuneAdaptation, PPO):
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
         clip_range = self.clip_range(self._current_progress_remaining)  # type: ignore[operator]
-        clip_range_vf = None if self.clip_range_vf is None else self.clip_range_vf(self._current_progress_remaining)  # type: ignore[operator]
+        progress = self._current_progress_remaining
+        clip_range_vf = None if self.clip_range_vf is None else self.clip_range_vf(progress)  # type: ignore[operator]
         self._prepare_rollout()
         actor_parameters, critic_parameters = self.policy.actor_parameters(), self.policy.critic_parameters()
-        logs: dict[str, list[float]] = {"policy_gradient_loss": [], "value_loss": [], "entropy": [], "clip_fraction": []}
+        logs: dict[str, list[float]] = {key: [] for key in ("policy_gradient_loss", "value_loss", "entropy", "clip_fraction")}
         approx_kl_divs: list[float] = []
         continue_training = True
         for epoch in range(self.n_epochs):
@@ -135,13 +139,15 @@ class MAPPO(FineTuneAdaptation, PPO):
                 log_ratio = agent_log_prob - data.old_agent_log_prob  # (B, N): one PPO sample per agent step
                 ratio = th.exp(log_ratio)
                 advantages = data.advantages.unsqueeze(-1)
-                policy_loss = -th.min(ratio * advantages, ratio.clamp(1 - clip_range, 1 + clip_range) * advantages).mean()
+                clipped_ratio = ratio.clamp(1 - clip_range, 1 + clip_range)
+                policy_loss = -th.min(ratio * advantages, clipped_ratio * advantages).mean()
 
                 self.policy.value_norm.update(data.returns)
                 targets = self.policy.value_norm.normalize(data.returns)
                 value_loss = self._huber(targets - values)
                 if clip_range_vf is not None:
-                    clipped = data.old_normalized_values + (values - data.old_normalized_values).clamp(-clip_range_vf, clip_range_vf)
+                    old_values = data.old_normalized_values
+                    clipped = old_values + (values - old_values).clamp(-clip_range_vf, clip_range_vf)
                     value_loss = th.max(value_loss, self._huber(targets - clipped))
                 value_loss = value_loss.mean()
 

@@ -143,9 +143,8 @@ class MAPPOPolicy(ActorCriticPolicy):
             raise ValueError(f"MAPPO needs a Box action space (Gaussian actions), got {self.action_space}")
         # Replace SB3's joint head and 9-D log-std by the per-agent shared head and a 3-D shared log-std.
         del self.log_std
-        self.action_net = nn.Sequential(
-            nn.Unflatten(-1, (NUM_ARMS, self.mlp_extractor.agent_latent_dim)), AgentHead(self.mlp_extractor.agent_latent_dim)
-        )
+        agent_latent_dim = self.mlp_extractor.agent_latent_dim
+        self.action_net = nn.Sequential(nn.Unflatten(-1, (NUM_ARMS, agent_latent_dim)), AgentHead(agent_latent_dim))
         self.agent_log_std = nn.Parameter(th.full((ACTION_PER_ARM,), float(self.log_std_init)))
         if self.ortho_init:
             self.action_net.apply(partial(self.init_weights, gain=ACTION_GAIN))
