@@ -85,6 +85,9 @@ def main() -> None:
     parser.add_argument("--inner-steps", type=int, default=1, help="K during meta-training")
     parser.add_argument("--outer-steps", type=int, default=50)
     parser.add_argument("--second-order", action="store_true")
+    parser.add_argument("--learning-rate", type=float, default=3e-4, help="outer (and warm-up) Adam learning rate")
+    parser.add_argument("--gamma", type=float, default=0.99)
+    parser.add_argument("--ent-coef", default="auto", help="SAC's ent_coef: 'auto', 'auto_0.1' or a number")
     parser.add_argument("--n-tasks", type=int, default=20, help="held-out test instructions")
     parser.add_argument("--k", type=int, nargs="+", default=DEFAULT_K, help="adaptation steps to evaluate")
     parser.add_argument("--n-eval-episodes", type=int, default=3)
@@ -106,7 +109,9 @@ def main() -> None:
             model = MAMLSAC(
                 "MlpPolicy", venv, n_support=args.n_support, inner_steps=args.inner_steps,
                 outer_steps=args.outer_steps, second_order=args.second_order, warmup_steps=args.warmup_steps,
-                policy_kwargs={"net_arch": args.net_arch}, tensorboard_log=str(args.out / "tb"), seed=args.seed,
+                policy_kwargs={"net_arch": args.net_arch}, learning_rate=args.learning_rate, gamma=args.gamma,
+                ent_coef=args.ent_coef if args.ent_coef.startswith("auto") else float(args.ent_coef),
+                tensorboard_log=str(args.out / "tb"), seed=args.seed,
             )
         start = time.perf_counter()
         model.learn(args.timesteps, log_interval=5, reset_num_timesteps=args.resume is None)
