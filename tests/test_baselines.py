@@ -178,6 +178,23 @@ def test_maac_critic_gives_one_q_per_agent_and_reads_only_own_action_directly():
     assert logits.shape[-2:] == (NUM_ARMS, NUM_ARMS - 1)  # each agent attends over the others only
 
 
+def test_maac_own_action_q_equals_per_agent_substitution():
+    """The one-pass actor-loss Q_i (others detached) has the values and action gradients of N substituted copies."""
+    env = make_env()
+    model = MAAC(env=env, policy_kwargs=dict(net_arch=dict(pi=TINY, qf=[32])), seed=SEED)
+    env.close()
+    obs = th.rand(6, OBS_DIM)
+    actions = (th.rand(6, ACTION_DIM) * 2 - 1).requires_grad_(True)
+    own_q = model.critic.own_action_q(obs, actions)[0]
+    own_grad = th.autograd.grad(own_q.sum(), actions)[0]
+    copies = model.critic(obs.repeat(NUM_ARMS, 1), substitute_agent_actions(actions, actions))[0]
+    substituted = copies.view(NUM_ARMS, 6, NUM_ARMS).diagonal(dim1=0, dim2=2)  # Q_i from copy i
+    substituted_grad = th.autograd.grad(substituted.sum(), actions)[0]
+    th.testing.assert_close(own_q, substituted)
+    th.testing.assert_close(own_q, model.critic(obs, actions)[0])
+    th.testing.assert_close(own_grad, substituted_grad)
+
+
 def test_mappo_per_agent_ratios_start_at_one_and_sum_to_joint_log_prob():
     env = make_env()
     model = MAPPO(env=env, n_steps=64, policy_kwargs=dict(net_arch=TINY), seed=SEED)

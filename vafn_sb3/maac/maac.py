@@ -13,7 +13,7 @@ from stable_baselines3.common.type_aliases import MaybeCallback
 from stable_baselines3.common.utils import polyak_update
 
 from vafn_gym.constants import NUM_ARMS
-from vafn_sb3.common.agents import clipped_step, substitute_agent_actions
+from vafn_sb3.common.agents import clipped_step
 from vafn_sb3.common.finetune import FineTuneAdaptation
 from vafn_sb3.maac.policies import AttentionCritic, MAACPolicy
 
@@ -109,11 +109,8 @@ class MAAC(FineTuneAdaptation, SAC):
             th.nn.utils.clip_grad_norm_(critic_parameters, self.critic_max_grad_norm)
             self.critic.optimizer.step()
 
-            # Copy i carries agent i's own sampled action (with gradient); the others' are detached samples.
-            batch = actions_pi.shape[0]
-            joint = substitute_agent_actions(actions_pi, actions_pi)
-            q_pi = th.stack(self.critic(data.observations.repeat(NUM_ARMS, 1), joint)).min(0).values
-            own_q = q_pi.view(NUM_ARMS, batch, NUM_ARMS).diagonal(dim1=0, dim2=2)  # (B, N): Q_i with a_i live
+            # Q_i with agent i's own sampled action live and the other agents' samples detached.
+            own_q = th.stack(self.critic.own_action_q(data.observations, actions_pi)).min(0).values
             actor_loss = (ent_coef * log_prob - own_q).sum(-1).mean()
             clipped_step(actor_loss, self.actor.optimizer, list(self.actor.parameters()), self.actor_max_grad_norm)
 

@@ -61,21 +61,33 @@ class AttentionQ(nn.Module):
         others = ~th.eye(NUM_ARMS, dtype=th.bool)
         self.register_buffer("others_mask", others, persistent=False)
 
+    def _encode(self, local_obs: th.Tensor, actions: th.Tensor) -> th.Tensor:
+        return self.sa_encoder(th.cat([local_obs, split_agents(actions, ACTION_PER_ARM)], dim=-1))
+
     def shared_parameters(self) -> list[nn.Parameter]:
         """Parameters whose gradients MAAC scales by ``1/n_agents`` (``AttentionCritic.shared_modules``)."""
         modules = (self.key_extractor, self.selector_extractor, self.value_extractor, self.sa_encoder)
         return [p for module in modules for p in module.parameters()]
 
-    def forward(self, obs: th.Tensor, actions: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        """``(Q (B, NUM_ARMS), logits (B, heads, NUM_ARMS, NUM_ARMS - 1))`` for joint obs ``(B, 15)`` and actions ``(B, 9)``."""
+    def forward(
+        self, obs: th.Tensor, actions: th.Tensor, others_actions: th.Tensor | None = None
+    ) -> tuple[th.Tensor, th.Tensor]:
+        """Per-agent ``Q (B, NUM_ARMS)`` and attention logits ``(B, heads, NUM_ARMS, NUM_ARMS - 1)``.
+
+        :param obs: joint observations ``(B, OBS_DIM)``.
+        :param actions: joint actions ``(B, ACTION_DIM)``; agent ``i``'s block enters ``Q_i`` through its own encoding.
+        :param others_actions: joint actions the *other* agents' keys and values are computed from (default
+            ``actions``). Passing ``actions.detach()`` gives every ``Q_i`` a gradient w.r.t. ``a_i`` only, in one
+            forward pass (``Q_i`` attends over ``j != i`` only, so its sole path to ``a_i`` is ``e_i``).
+        """
         local_obs = split_agents(obs, OBS_PER_ARM)
-        local_actions = split_agents(actions, ACTION_PER_ARM)
-        sa = self.sa_encoder(th.cat([local_obs, local_actions], dim=-1))
+        sa = self._encode(local_obs, actions)
+        sa_others = sa if others_actions is None else self._encode(local_obs, others_actions)
         s = self.state_encoder(local_obs)
         batch = obs.shape[0]
         shape = (batch, NUM_ARMS, self.attend_heads, self.head_dim)
-        keys = self.key_extractor(sa).view(shape)
-        values = self.value_extractor(sa).view(shape)
+        keys = self.key_extractor(sa_others).view(shape)
+        values = self.value_extractor(sa_others).view(shape)
         queries = self.selector_extractor(s).view(shape)
         logits = th.einsum("bihd,bjhd->bhij", queries, keys)  # (B, heads, i, j): agent i attends to agent j
         logits = logits[:, :, self.others_mask].view(batch, self.attend_heads, NUM_ARMS, NUM_ARMS - 1)
@@ -128,6 +140,10 @@ class AttentionCritic(BaseModel):
     def forward(self, obs: th.Tensor, actions: th.Tensor) -> tuple[th.Tensor, ...]:
         """Per-agent Q-values ``(B, NUM_ARMS)`` of every critic."""
         return tuple(q_net(obs, actions)[0] for q_net in self.q_networks)
+
+    def own_action_q(self, obs: th.Tensor, actions: th.Tensor) -> tuple[th.Tensor, ...]:
+        """Per-agent Q-values of every critic, differentiable w.r.t. each agent's *own* action only (actor losses)."""
+        return tuple(q_net(obs, actions, others_actions=actions.detach())[0] for q_net in self.q_networks)
 
     def forward_with_logits(self, obs: th.Tensor, actions: th.Tensor) -> list[tuple[th.Tensor, th.Tensor]]:
         """``(Q, attention logits)`` of every critic (the logits feed MAAC's attention regulariser)."""
