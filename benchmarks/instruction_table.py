@@ -61,12 +61,14 @@ def evaluate_split(generator, split: str, seeds: int, items: int, workers: int, 
     return cells
 
 
-def summarise(cells: dict, row: str, difficulty: str) -> tuple[float, float, float, float]:
-    """(time mean, time std, accuracy mean %, accuracy std %) of one cell."""
+def summarise(cells: dict, row: str, difficulty: str) -> tuple[float, float, float, float, float, float]:
+    """(wall mean, wall std, CPU mean, CPU std, accuracy mean %, accuracy std %) of one cell."""
     results = cells[(row, difficulty)]
     seconds = np.concatenate([r.seconds for r in results])
+    cpu = np.concatenate([r.cpu_seconds for r in results])
     accuracy = np.array([100.0 * r.correct.mean() for r in results])
-    return float(seconds.mean()), float(seconds.std()), float(accuracy.mean()), float(accuracy.std())
+    return (float(seconds.mean()), float(seconds.std()), float(cpu.mean()), float(cpu.std()),
+            float(accuracy.mean()), float(accuracy.std()))
 
 
 def cross_modal_probe(generator, items: int, heldout_items) -> dict:
@@ -131,27 +133,32 @@ def main() -> None:
     args = parse_args()
     torch.set_num_threads(1)
     started = time.time()
+    load = os.getloadavg()
     generator = InstructionGenerator.load(args.checkpoint)
     rows = list(ROWS)
     heldout = evaluate_split(generator, "heldout", args.seeds, args.items, args.workers, rows)
+    weights = generator.fusion_weights or {"audio": 1.0, "image": 1.0}
     lines = [f"Held-out split (unseen voices/variants, handwriting and fonts); {args.seeds} seeds x {args.items} items "
              f"per cell; accuracy = exact sequence match (mean ± std over seeds); time per instruction on 1 CPU thread, "
-             f"features included (mean ± std over items).", "",
-             "| Input | Difficulty | Time (s) | Accuracy (%) | Paper accuracy (%) | Paper time (s) |",
-             "|---|---|---|---|---|---|"]
-    csv_rows = [["split", "input", "difficulty", "time_mean_s", "time_std_s", "accuracy_mean", "accuracy_std",
-                 "paper_accuracy", "seeds", "items_per_seed"]]
+             f"features included (mean ± std over items). Fusion reliability weights (calibrated on in-distribution "
+             f"validation data by the training command): {weights}.",
+             f"Wall time depends on machine load (1-min load average at start: {load[0]:.1f} on {os.cpu_count()} cores); "
+             "CPU time is the thread CPU time of the call, which other processes affect much less.", "",
+             "| Input | Difficulty | Time (s) | CPU time (s) | Accuracy (%) | Paper accuracy (%) | Paper time (s) |",
+             "|---|---|---|---|---|---|---|"]
+    csv_rows = [["split", "input", "difficulty", "time_mean_s", "time_std_s", "cpu_mean_s", "cpu_std_s",
+                 "accuracy_mean", "accuracy_std", "paper_accuracy", "seeds", "items_per_seed"]]
     for row in rows:
         for k, difficulty in enumerate(DIFFICULTY_LENGTHS):
-            t_mean, t_std, a_mean, a_std = summarise(heldout, row, difficulty)
+            t_mean, t_std, c_mean, c_std, a_mean, a_std = summarise(heldout, row, difficulty)
             paper = PAPER_ACCURACY.get(row)
             paper_text = f"{paper[k]:.1f}" if paper else "-"
             paper_time = PAPER_LATENCY_S.get(row.replace(" (noise)", ""), "-")
             low, high = DIFFICULTY_LENGTHS[difficulty]
             lines.append(f"| {row} | {difficulty.capitalize()} ({low}-{high}) | {t_mean:.4f} ± {t_std:.4f} | "
-                         f"{a_mean:.1f} ± {a_std:.1f} | {paper_text} | {paper_time} |")
-            csv_rows.append(["heldout", row, difficulty, f"{t_mean:.6f}", f"{t_std:.6f}", f"{a_mean:.2f}", f"{a_std:.2f}",
-                             paper[k] if paper else "", args.seeds, args.items])
+                         f"{c_mean:.4f} ± {c_std:.4f} | {a_mean:.1f} ± {a_std:.1f} | {paper_text} | {paper_time} |")
+            csv_rows.append(["heldout", row, difficulty, f"{t_mean:.6f}", f"{t_std:.6f}", f"{c_mean:.6f}", f"{c_std:.6f}",
+                             f"{a_mean:.2f}", f"{a_std:.2f}", paper[k] if paper else "", args.seeds, args.items])
     if args.in_distribution:
         compare_rows = ["Audio", "Visual", "Audio-Visual"]
         inside = evaluate_split(generator, "test", args.in_distribution, args.items, args.workers, compare_rows)
@@ -160,10 +167,11 @@ def main() -> None:
                   "| Input | Difficulty | In-distribution | Held-out |", "|---|---|---|---|"]
         for row in compare_rows:
             for difficulty in DIFFICULTY_LENGTHS:
-                _, _, a_in, _ = summarise(inside, row, difficulty)
-                _, _, a_out, _ = summarise(heldout, row, difficulty)
+                a_in = summarise(inside, row, difficulty)[4]
+                a_out = summarise(heldout, row, difficulty)[4]
                 lines.append(f"| {row} | {difficulty.capitalize()} | {a_in:.1f} | {a_out:.1f} |")
-                csv_rows.append(["test", row, difficulty, "", "", f"{a_in:.2f}", "", "", args.in_distribution, args.items])
+                csv_rows.append(["test", row, difficulty, "", "", "", "", f"{a_in:.2f}", "", "", args.in_distribution,
+                                 args.items])
     if args.transfer_items:
         probe_items = generate_raw(EVAL_SEED_BASE + 99, "heldout", args.items, workers=args.workers)
         transfer = cross_modal_probe(generator, args.transfer_items, probe_items)
@@ -173,8 +181,8 @@ def main() -> None:
         for source in ("audio", "image"):
             lines.append(f"| {source} Φ | {transfer[(source, 'audio')]:.1f} | {transfer[(source, 'image')]:.1f} |")
             for target in ("audio", "image"):
-                csv_rows.append([f"transfer:{source}->{target}", "", "", "", "", f"{transfer[(source, target)]:.2f}",
-                                 "", "", 1, args.items])
+                csv_rows.append([f"transfer:{source}->{target}", "", "", "", "", "", "",
+                                 f"{transfer[(source, target)]:.2f}", "", "", 1, args.items])
     lines += ["", f"Generated by `OMP_NUM_THREADS=1 python benchmarks/instruction_table.py "
                   f"--seeds {args.seeds} --items {args.items}` in {time.time() - started:.0f} s "
                   f"(checkpoint: {generator.metadata.get('command', 'unknown')})."]

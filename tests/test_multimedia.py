@@ -30,6 +30,8 @@ needs_espeak = pytest.mark.skipif(not HAVE_ESPEAK, reason="speech synthesis need
 #: Fresh held-out items per difficulty for the accuracy test (never used in training: other seed, other split).
 ACCURACY_ITEMS = 30
 TEST_SEED = 4242
+#: Regression floor (%) of image-only accuracy per difficulty (not a paper target: the paper has no such row).
+VISUAL_FLOOR = 85.0
 
 
 @pytest.fixture(scope="module")
@@ -239,8 +241,9 @@ def test_accuracy_on_fresh_heldout_items_beats_the_paper(generator, heldout):
         for row in ("Audio", "Audio (noise)", "Audio-Visual", "Audio-Visual (noise)"):
             accuracy = 100 * run_cell(generator.transcribe, items, TEST_SEED, row).correct.mean()
             assert accuracy >= PAPER_ACCURACY[row][k], (row, difficulty, accuracy)
+        # The paper has no image-only row: this floor only guards against regressions (validation: ~97 %).
         visual = 100 * run_cell(generator.transcribe, items, TEST_SEED, "Visual").correct.mean()
-        assert visual >= PAPER_ACCURACY["Audio-Visual"][k], (difficulty, visual)
+        assert visual >= VISUAL_FLOOR, (difficulty, visual)
 
 
 # --- CLI ---------------------------------------------------------------------------------------------------------
@@ -407,3 +410,23 @@ def test_stream_rejects_low_confidence_and_survives_a_crashing_generator():
         assert stream.wait(timeout=10) and stream.alive
     assert [e.status for e in stream.events] == ["error", "rejected"] and len(seen) == 2
     assert len(queue) == 0 and threading.active_count() >= 1
+
+
+def test_batchnorm_folding_keeps_outputs():
+    from vafn_gym.multimedia.model import InstructionModel, fold_batchnorm
+
+    torch.manual_seed(0)
+    model = InstructionModel()
+    model.train()
+    with torch.no_grad():  # give BatchNorm non-trivial running statistics
+        for _ in range(3):
+            model.encode("audio", torch.randn(4, N_MELS, 50) * 3 + 1, torch.tensor([50] * 4))
+            model.encode("image", torch.rand(4, 1, IMAGE_HEIGHT, 64), torch.tensor([64] * 4))
+    model.eval()
+    folded = fold_batchnorm(model)
+    with torch.inference_mode():
+        for modality, x, n in (("audio", torch.randn(1, N_MELS, 77), 77), ("image", torch.rand(1, 1, IMAGE_HEIGHT, 90), 90)):
+            a, _ = model.encode(modality, x, torch.tensor([n]))
+            b, _ = folded.encode(modality, x, torch.tensor([n]))
+            assert torch.allclose(a, b, atol=1e-4)
+    assert not any(isinstance(m, torch.nn.modules.batchnorm._BatchNorm) for m in folded.modules())

@@ -7,9 +7,8 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from vafn_gym.multimedia.constants import IMAGE_HEIGHT, MAX_IMAGE_WIDTH, MIN_IMAGE_WIDTH, SAMPLE_RATE
+from vafn_gym.multimedia.constants import IMAGE_HEIGHT, MAX_IMAGE_WIDTH, MIN_IMAGE_WIDTH
 from vafn_gym.multimedia.dataset import INK_LEVELS, TrainingData
-from vafn_gym.multimedia.features import log_mel_batch
 
 #: Augmentation settings (training only).
 NOISE_PROBABILITY: float = 0.5
@@ -32,19 +31,6 @@ def pad_images(strips: Sequence[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor
     for i, strip in enumerate(strips):
         batch[i, 0, :, : strip.shape[1]] = strip
     return torch.from_numpy(batch), torch.tensor(widths)
-
-
-def audio_batch(waveforms: Sequence[np.ndarray], sample_rate: int = SAMPLE_RATE) -> tuple[torch.Tensor, torch.Tensor]:
-    """Log-mel features (B, N_MELS, T) and frame counts of float waveforms at one sample rate.
-
-    :param waveforms: float32 clips.
-    :param sample_rate: their sample rate.
-    """
-    lengths = [len(w) for w in waveforms]
-    padded = np.zeros((len(waveforms), max(lengths)), np.float32)
-    for i, w in enumerate(waveforms):
-        padded[i, : len(w)] = w
-    return log_mel_batch(torch.from_numpy(padded), torch.tensor(lengths), sample_rate)
 
 
 def _stretch(strip: np.ndarray, factor: float) -> np.ndarray:

@@ -25,8 +25,6 @@ SILENCE_DBFS: float = -55.0
 #: Fraction of samples at full scale above which a clip is reported as clipped.
 CLIP_LEVEL: float = 0.999
 CLIP_FRACTION: float = 0.01
-#: Seconds of (near) silence used to render the spoken empty instruction's padding.
-EDGE_SILENCE_SECONDS: float = 0.1
 
 # --- images ---
 #: Height of the canonical strip every image is resized to, and the width of one digit cell when rendering.

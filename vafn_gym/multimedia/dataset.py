@@ -12,12 +12,15 @@ import multiprocessing
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import TYPE_CHECKING, Optional, Sequence
 
 import numpy as np
 
 from vafn_gym.constants import DIFFICULTY_LENGTHS
 from vafn_gym.multimedia.constants import MAX_INSTRUCTION_LENGTH, NUM_ARMS, SAMPLE_RATE
+
+if TYPE_CHECKING:  # pragma: no cover
+    from vafn_gym.multimedia.speech import Voice
 
 #: Splits: training voices/glyphs; fresh items of the same voices/glyphs; held-out voices, variants and glyphs.
 SPLIT_CODES: dict[str, int] = {"train": 0, "test": 1, "heldout": 2}
@@ -29,7 +32,6 @@ DEFAULT_CACHE = Path(os.environ.get("VAFN_CACHE", Path.home() / ".cache" / "vafn
 TRAIN_SNR_RANGE_DB: tuple[float, float] = (5.0, 35.0)
 #: Quantisation of cached strips (ink in [0, 1] stored as uint8).
 INK_LEVELS: float = 255.0
-_INK_LEVELS = INK_LEVELS
 
 
 @dataclass(frozen=True)
@@ -37,7 +39,7 @@ class ItemSpec:
     """Everything needed to render one item: the arm ids, how they are spoken and how they are drawn."""
 
     arms: tuple[int, ...]
-    voice: "object"
+    voice: "Voice"
     template: int
     empty_phrase: int
     image_seed: int
@@ -148,8 +150,8 @@ def _compact_shard(args: tuple[int, str, int, int, str]) -> str:
         clean_audio.append(log_mel(wave, SAMPLE_RATE)[0].numpy().astype(np.float16))
         noisy = add_awgn(wave, rng.uniform(*TRAIN_SNR_RANGE_DB), rng)
         noisy_audio.append(log_mel(noisy, SAMPLE_RATE)[0].numpy().astype(np.float16))
-        clean.append(np.rint(canonical_strip(image) * _INK_LEVELS).astype(np.uint8))
-        masked.append(np.rint(canonical_strip(cutout(image, rng)) * _INK_LEVELS).astype(np.uint8))
+        clean.append(np.rint(canonical_strip(image) * INK_LEVELS).astype(np.uint8))
+        masked.append(np.rint(canonical_strip(cutout(image, rng)) * INK_LEVELS).astype(np.uint8))
     np.savez(path + ".tmp.npz", arms=np.array([list(a) + [0] * (MAX_INSTRUCTION_LENGTH - len(a)) for a in raw.arms], np.int8),
              lengths=np.array([len(a) for a in raw.arms], np.int8),
              clean_audio=np.concatenate(clean_audio, axis=1), noisy_audio=np.concatenate(noisy_audio, axis=1),

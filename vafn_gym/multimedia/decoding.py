@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Optional
 
 import numpy as np
 import torch
@@ -34,27 +35,27 @@ def greedy_decode(phi: torch.Tensor, logits: torch.Tensor) -> Decoded:
     :param logits: (T, VOCAB_SIZE) decoder logits of those frames.
     """
     log_probs = torch.log_softmax(logits, dim=-1)
-    probs = log_probs.exp()
-    best_prob, best = probs.max(dim=-1)
-    best_np = best.numpy()
+    probs = log_probs.exp().numpy()
+    best = probs.argmax(-1)
+    length = len(best)
+    if length == 0:
+        return Decoded([], [], [], phi.new_zeros((0, phi.shape[-1])), 0.0, log_probs)
+    best_prob = probs[np.arange(length), best]
+    starts = np.flatnonzero(np.r_[True, best[1:] != best[:-1]])  # segment starts of the best path
+    ends = np.r_[starts[1:], length]
     arms, confidences, peaks, embeddings = [], [], [], []
-    t, length = 0, len(best_np)
-    while t < length:
-        label = int(best_np[t])
-        end = t + 1
-        while end < length and best_np[end] == label:
-            end += 1
-        if label != BLANK:
-            segment = probs[t:end, label]
-            peak = t + int(torch.argmax(segment))
-            arms.append(label)
-            confidences.append(float(segment.max()))
-            peaks.append(peak)
-            weights = segment / segment.sum()
-            embeddings.append((weights[:, None] * phi[t:end]).sum(0))
-        t = end
-    stacked = torch.stack(embeddings) if embeddings else phi.new_zeros((0, phi.shape[-1]))
-    return Decoded(arms, confidences, peaks, stacked, float(best_prob.min()) if length else 0.0, log_probs)
+    phi_np = phi.numpy()
+    for start, end in zip(starts, ends):
+        label = int(best[start])
+        if label == BLANK:
+            continue
+        segment = probs[start:end, label]
+        arms.append(label)
+        confidences.append(float(segment.max()))
+        peaks.append(int(start + segment.argmax()))
+        embeddings.append((segment / segment.sum()) @ phi_np[start:end])
+    stacked = torch.from_numpy(np.stack(embeddings).astype(np.float32)) if embeddings else phi.new_zeros((0, phi.shape[-1]))
+    return Decoded(arms, confidences, peaks, stacked, float(best_prob.min()), log_probs)
 
 
 def sequence_log_likelihood(log_probs: torch.Tensor, arms: list[int]) -> float:
@@ -80,18 +81,20 @@ class Fused:
     weakest: float
 
 
-def fuse(readings: dict[str, Decoded], decoder: torch.nn.Module) -> Fused:
+def fuse(readings: dict[str, Decoded], decoder: torch.nn.Module, weights: Optional[dict[str, float]] = None) -> Fused:
     """Fuse per-modality readings in Φ.
 
     When all modalities read the same number of tokens, each token's Φ embeddings are averaged with weights
-    proportional to the modalities' token confidences and decoded again by the shared decoder ("latent" fusion).
-    When the counts disagree, every modality's reading is rescored by the sum over modalities of its
-    confidence-weighted CTC log-likelihood and the best candidate wins ("rescored"); its confidence is the candidate's
+    proportional to modality reliability x token confidence and decoded again by the shared decoder ("latent"
+    fusion). When the counts disagree, every modality's reading is rescored by the reliability-weighted sum over
+    modalities of its CTC log-likelihood and the best candidate wins ("rescored"); its confidence is the candidate's
     posterior among the candidates, so a disagreement between modalities shows up as low confidence.
 
     :param readings: modality -> greedy reading.
     :param decoder: the shared decoder (pointwise: Φ vector -> CTC logits).
+    :param weights: modality -> reliability weight (calibrated on validation data; default 1 each).
     """
+    reliability = {name: 1.0 if weights is None else float(weights.get(name, 1.0)) for name in readings}
     names = list(readings)
     if len(names) == 1:
         only = readings[names[0]]
@@ -101,19 +104,18 @@ def fuse(readings: dict[str, Decoded], decoder: torch.nn.Module) -> Fused:
         count = counts.pop()
         if count == 0:
             return Fused([], [], "latent", max(readings[n].weakest for n in names))
-        weights = torch.tensor([[readings[n].confidences[j] for j in range(count)] for n in names])  # (M, L)
-        weights = weights / weights.sum(0, keepdim=True)
+        mix = torch.tensor([[reliability[n] * readings[n].confidences[j] for j in range(count)] for n in names])  # (M, L)
+        mix = mix / mix.sum(0, keepdim=True).clamp_min(1e-12)
         stacked = torch.stack([readings[n].embeddings for n in names])  # (M, L, D)
-        fused = (weights[:, :, None] * stacked).sum(0)
+        fused = (mix[:, :, None] * stacked).sum(0)
         probs = torch.softmax(decoder(fused), dim=-1)
         probs[:, BLANK] = 0.0  # a token position was agreed on; only its identity is decided here
         probs = probs / probs.sum(-1, keepdim=True)
         confidence, arms = probs.max(-1)
         return Fused([int(a) for a in arms], [float(c) for c in confidence], "latent",
                      max(readings[n].weakest for n in names))
-    sharpness = {n: float(np.mean(readings[n].confidences)) if readings[n].confidences else readings[n].weakest for n in names}
     candidates = [readings[n].arms for n in names]
-    scores = np.array([sum(sharpness[m] * sequence_log_likelihood(readings[m].log_probs, cand) for m in names)
+    scores = np.array([sum(reliability[m] * sequence_log_likelihood(readings[m].log_probs, cand) for m in names)
                        for cand in candidates])
     scores = np.nan_to_num(scores, nan=-1e9, neginf=-1e9)
     posterior = np.exp(scores - scores.max())

@@ -35,10 +35,11 @@ PAPER_LATENCY_S: dict[str, str] = {"Audio": "0.008-0.025", "Audio-Visual": "0.38
 
 @dataclass
 class CellResult:
-    """Per-item outcomes of one (row, split) cell: correctness, latency and confidence of every item."""
+    """Per-item outcomes of one (row, split) cell: correctness, wall and thread-CPU latency, confidence."""
 
     correct: np.ndarray
     seconds: np.ndarray
+    cpu_seconds: np.ndarray
     confidence: np.ndarray
 
 
@@ -69,7 +70,8 @@ def corrupted_inputs(items: RawItems, eval_seed: int, index: int, row: str) -> d
 
 def run_cell(transcribe: Callable[..., object], items: RawItems, eval_seed: int, row: str,
              limit: Optional[int] = None) -> CellResult:
-    """Transcribe every item of ``items`` for ``row``; time each call (features included, input prep excluded).
+    """Transcribe every item of ``items`` for ``row``; time each call (wall and thread CPU; features included,
+    corruption excluded).
 
     A ValueError (unusable input) counts as a wrong answer.
 
@@ -80,16 +82,16 @@ def run_cell(transcribe: Callable[..., object], items: RawItems, eval_seed: int,
     :param limit: only the first ``limit`` items.
     """
     count = len(items.arms) if limit is None else min(limit, len(items.arms))
-    correct, seconds, confidence = np.zeros(count, bool), np.zeros(count), np.zeros(count)
+    correct, seconds, cpu, confidence = np.zeros(count, bool), np.zeros(count), np.zeros(count), np.zeros(count)
     for i in range(count):
         kwargs = corrupted_inputs(items, eval_seed, i, row)
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.thread_time()
         try:
             result = transcribe(**kwargs)
         except ValueError:
-            seconds[i] = time.perf_counter() - start
-            continue
-        seconds[i] = time.perf_counter() - start
-        correct[i] = tuple(result.instruction.arms) == tuple(items.arms[i])
-        confidence[i] = result.confidence
-    return CellResult(correct, seconds, confidence)
+            result = None
+        seconds[i], cpu[i] = time.perf_counter() - start, time.thread_time() - start_cpu
+        if result is not None:
+            correct[i] = tuple(result.instruction.arms) == tuple(items.arms[i])
+            confidence[i] = result.confidence
+    return CellResult(correct, seconds, cpu, confidence)

@@ -70,6 +70,8 @@ class InstructionGenerator:
         self.model = model.eval()
         self.metadata = metadata or {}
         self.low_confidence = float(low_confidence)
+        #: Modality reliability weights of the fusion, calibrated by the training command (default: equal).
+        self.fusion_weights: dict = dict(self.metadata.get("fusion_weights", {}))
         self._torch = torch
 
     @classmethod
@@ -81,7 +83,7 @@ class InstructionGenerator:
         """
         import torch
 
-        from vafn_gym.multimedia.model import InstructionModel, ModelConfig
+        from vafn_gym.multimedia.model import InstructionModel, ModelConfig, fold_batchnorm
 
         checkpoint = Path(path) if path is not None else DEFAULT_CHECKPOINT
         if not checkpoint.is_file():
@@ -90,7 +92,7 @@ class InstructionGenerator:
         metadata = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
         model = InstructionModel(ModelConfig.from_dict(metadata["config"]) if "config" in metadata else ModelConfig())
         model.load_state_dict(torch.load(checkpoint, map_location="cpu", weights_only=True))
-        generator = cls(model, metadata)
+        generator = cls(fold_batchnorm(model.eval()), metadata)
         if warm:
             generator.warm_up()
         return generator
@@ -186,7 +188,7 @@ class InstructionGenerator:
             raise ValueError("no usable input: " + "; ".join(f"{name}: {why}" for name, why in dropped.items()))
         warnings += [f"{name} ignored: {why}" for name, why in dropped.items()]
         with self._torch.inference_mode():
-            fused = fuse(readings, self.model.decode)
+            fused = fuse(readings, self.model.decode, self.fusion_weights)
         if len({tuple(r.arms) for r in readings.values()}) > 1:
             warnings.append("modalities disagree: " + ", ".join(f"{n}={list(r.arms)}" for n, r in readings.items()))
         arms = fused.arms[:MAX_INSTRUCTION_LENGTH]

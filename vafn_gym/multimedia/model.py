@@ -138,3 +138,33 @@ class InstructionModel(nn.Module):
         :param phi: latent vectors (..., LATENT_DIM).
         """
         return self.decoder(phi)
+
+
+def _fold(conv: nn.Module, norm: nn.Module) -> None:
+    """Fold an eval-mode BatchNorm into the preceding convolution's weight and bias (in place)."""
+    scale = norm.weight / torch.sqrt(norm.running_var + norm.eps)
+    shape = (-1,) + (1,) * (conv.weight.dim() - 1)
+    conv.weight.data = conv.weight.data * scale.reshape(shape)
+    bias = conv.bias.data if conv.bias is not None else torch.zeros_like(norm.running_mean)
+    conv.bias = nn.Parameter((bias - norm.running_mean) * scale + norm.bias)
+
+
+def fold_batchnorm(model: InstructionModel) -> InstructionModel:
+    """Inference copy of ``model`` with every BatchNorm folded into its convolution (same outputs, fewer ops).
+
+    :param model: a trained model (its BatchNorm running statistics are used).
+    """
+    import copy
+
+    folded = copy.deepcopy(model).eval()
+    for module in folded.modules():
+        if isinstance(module, _Residual1d):
+            _fold(module.conv, module.norm)
+            module.norm = nn.Identity()
+        elif isinstance(module, nn.Sequential):
+            children = list(module)
+            for i in range(len(children) - 1):
+                if isinstance(children[i], (nn.Conv1d, nn.Conv2d)) and isinstance(children[i + 1], (nn.BatchNorm1d, nn.BatchNorm2d)):
+                    _fold(children[i], children[i + 1])
+                    module[i + 1] = nn.Identity()
+    return folded

@@ -129,7 +129,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--train-items", type=int, default=6000, help="training items (speech + strip pairs)")
     parser.add_argument("--val-items", type=int, default=500, help="validation items per split (test, heldout)")
-    parser.add_argument("--steps", type=int, default=2500, help="optimisation steps")
+    parser.add_argument("--steps", type=int, default=1400, help="optimisation steps")
     parser.add_argument("--batch-size", type=int, default=48)
     parser.add_argument("--lr", type=float, default=3e-3)
     parser.add_argument("--align-weight", type=float, default=0.2, help="weight of the InfoNCE alignment loss")
@@ -137,7 +137,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--temperature", type=float, default=0.1)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=2, help="data-generation processes")
-    parser.add_argument("--eval-every", type=int, default=500)
+    parser.add_argument("--eval-every", type=int, default=350)
     parser.add_argument("--out", type=Path, default=CHECKPOINT_DIR)
     parser.add_argument("--logdir", type=Path, default=Path("runs") / "multimedia")
     parser.add_argument("--cache-dir", type=Path, default=None)
@@ -154,6 +154,7 @@ def main(argv=None) -> dict:
     from tqdm import tqdm
 
     from vafn_gym.multimedia.batching import bucketed_batches, make_batch
+    from vafn_gym.multimedia.calibration import calibrate_fusion
     from vafn_gym.multimedia.dataset import DEFAULT_CACHE, build_cache
     from vafn_gym.multimedia.model import InstructionModel, ModelConfig
 
@@ -225,6 +226,9 @@ def main(argv=None) -> dict:
         "torch": torch.__version__,
         "validation": history,
     }
+    metadata.update(calibrate_fusion(model, validation["test"]))
+    metadata["total_seconds"] = round(time.time() - started, 1)
+    metadata["cpu_seconds"] = round(_cpu_seconds(), 1)
     (args.out / f"{CHECKPOINT_NAME}.json").write_text(json.dumps(metadata, indent=2))
     return metadata
 
