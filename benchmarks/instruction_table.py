@@ -80,7 +80,6 @@ def cross_modal_probe(generator, items: int, heldout_items) -> dict:
     from vafn_gym.multimedia.constants import BLANK, VOCAB_SIZE
     from vafn_gym.multimedia.dataset import build_cache
     from vafn_gym.multimedia.decoding import greedy_decode
-    from vafn_gym.multimedia.features import log_mel
     from vafn_gym.multimedia.images import canonical_strip
 
     model = generator.model

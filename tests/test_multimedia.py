@@ -70,7 +70,7 @@ def test_import_is_light():
 
 # --- data generation ---------------------------------------------------------------------------------------------
 def test_item_specs_and_images_are_deterministic():
-    from vafn_gym.multimedia.dataset import item_spec, render_item
+    from vafn_gym.multimedia.dataset import item_spec
     from vafn_gym.multimedia.strips import render_strip
 
     assert item_spec(3, "train", 7) == item_spec(3, "train", 7)

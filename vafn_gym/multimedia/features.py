@@ -28,7 +28,11 @@ def frame_params(sample_rate: int) -> tuple[int, int, int]:
 
 
 @lru_cache(maxsize=8)
-def _filterbank(sample_rate: int) -> tuple["torch.Tensor", "torch.Tensor"]:
+def mel_filterbank(sample_rate: int) -> tuple["torch.Tensor", "torch.Tensor"]:
+    """(N_MELS, n_fft // 2 + 1) mel filterbank and Hann window for ``sample_rate`` (built once, cached).
+
+    :param sample_rate: audio sample rate in Hz.
+    """
     import warnings
 
     import librosa
@@ -62,7 +66,7 @@ def log_mel_batch(waveforms: "torch.Tensor", lengths: "torch.Tensor", sample_rat
     import torch
 
     n_fft, win, hop = frame_params(sample_rate)
-    mel, window = _filterbank(sample_rate)
+    mel, window = mel_filterbank(sample_rate)
     spec = torch.stft(waveforms, n_fft=n_fft, hop_length=hop, win_length=win, window=window, center=True,
                       pad_mode="constant", return_complex=True)
     power = spec.real.square() + spec.imag.square()

@@ -98,14 +98,17 @@ class InstructionGenerator:
         return generator
 
     def warm_up(self) -> None:
-        """Build cached filterbanks and run each encoder once so the first real call is fast."""
-        from vafn_gym.multimedia.features import _filterbank
+        """Build cached filterbanks, import the I/O libraries and run each path once so the first real call is fast."""
+        from vafn_gym.multimedia.features import mel_filterbank
 
         for rate in WARM_SAMPLE_RATES:
-            _filterbank(rate)
+            mel_filterbank(rate)
+        import soundfile  # noqa: F401  (first import is slow; file input uses it)
+
         rng = np.random.default_rng(0)
         self.encode_audio(rng.normal(0, 0.1, SAMPLE_RATE).astype(np.float32), SAMPLE_RATE)
-        self.encode_strip(np.zeros((IMAGE_HEIGHT, IMAGE_HEIGHT * 4), np.float32))
+        card = rng.integers(0, 255, (IMAGE_HEIGHT, IMAGE_HEIGHT * 4)).astype(np.uint8)
+        self.read(self.encode_strip(canonical_strip(card)))
 
     # --- encoders ---
     def encode_audio(self, waveform: np.ndarray, sample_rate: int):

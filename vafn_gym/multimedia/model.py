@@ -54,6 +54,7 @@ class _Residual1d(nn.Module):
         self.norm = nn.BatchNorm1d(channels)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Residual dilated convolution."""
         return x + torch.relu(self.norm(self.conv(x)))
 
 
@@ -69,6 +70,7 @@ class AudioEncoder(nn.Module):
         )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, N_MELS, T) -> (B, C, T')."""
         return self.net(x)
 
 
@@ -84,6 +86,7 @@ class ImageEncoder(nn.Module):
         c1, c2, c3, c4 = channels
 
         def block(cin: int, cout: int, stride: tuple[int, int] = (1, 1)) -> list[nn.Module]:
+            """3x3 convolution, BatchNorm, ReLU."""
             return [nn.Conv2d(cin, cout, 3, stride=stride, padding=1), nn.BatchNorm2d(cout), nn.ReLU()]
 
         remaining = IMAGE_HEIGHT // 16
@@ -95,6 +98,7 @@ class ImageEncoder(nn.Module):
         self.context = nn.Sequential(nn.Conv1d(c4, c4, 5, padding=2), nn.BatchNorm1d(c4), nn.ReLU())
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 1, IMAGE_HEIGHT, W) -> (B, C, W')."""
         return self.context(self.net(x).squeeze(2))
 
 
