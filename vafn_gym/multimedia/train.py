@@ -116,6 +116,28 @@ def evaluate(model, data, batch_size: int = 64) -> dict[str, float]:
     return {modality: count / len(data) for modality, count in correct.items()}
 
 
+class _NoWriter:
+    """Stand-in for SummaryWriter when tensorboard is not installed."""
+
+    def add_scalar(self, *args, **kwargs) -> None:
+        """Ignore a scalar."""
+
+    def close(self) -> None:
+        """Nothing to close."""
+
+
+def _summary_writer(logdir: Path):
+    """A TensorBoard SummaryWriter, or a no-op writer (with a warning) when tensorboard is missing."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        import warnings
+
+        warnings.warn("tensorboard is not installed: training runs without TensorBoard logs")
+        return _NoWriter()
+    return SummaryWriter(str(logdir))
+
+
 def _cpu_seconds() -> float:
     """CPU time (user + system) of this process and its finished children (the data-generation workers)."""
     import resource
@@ -150,7 +172,6 @@ def main(argv=None) -> dict:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import torch
     import torch.nn.functional as F
-    from torch.utils.tensorboard import SummaryWriter
     from tqdm import tqdm
 
     from vafn_gym.multimedia.batching import bucketed_batches, make_batch
@@ -171,7 +192,7 @@ def main(argv=None) -> dict:
     model = InstructionModel(config)
     optimizer = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=args.lr, total_steps=args.steps, pct_start=0.1)
-    writer = SummaryWriter(str(args.logdir))
+    writer = _summary_writer(args.logdir)
     history = []
     bar = tqdm(range(1, args.steps + 1), desc="training", unit="step")
     queue: list = []
