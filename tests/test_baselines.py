@@ -13,6 +13,7 @@ from vafn_sb3.common.agents import per_agent_sum, substitute_agent_actions
 from vafn_sb3.maac import MAAC
 from vafn_sb3.maddpg import MADDPG
 from vafn_sb3.mappo import MAPPO
+from vafn_sb3.mappo.policies import ValueNorm
 from vafn_sb3.mtsac import MTSAC
 
 ENV_ID = "VAFN/ThreeArmReach-v0"
@@ -209,6 +210,19 @@ def test_mappo_per_agent_ratios_start_at_one_and_sum_to_joint_log_prob():
     th.testing.assert_close(th.exp(agent_log_prob - data.old_agent_log_prob), th.ones(64, NUM_ARMS))
     th.testing.assert_close(data.old_agent_log_prob.sum(-1), data.old_log_prob)  # SB3's stored joint log-prob
     assert per_agent_sum(th.ones(1, ACTION_DIM)).tolist() == [[ACTION_DIM / NUM_ARMS] * NUM_ARMS]
+
+
+def test_value_norm_matches_on_policy_statistics():
+    """One update gives the batch mean/variance exactly (debiased EMA); normalise and denormalise are inverses."""
+    value_norm = ValueNorm()
+    returns = th.randn(500) * 2.0 + 5.0
+    value_norm.update(returns)
+    mean, var = value_norm.mean_var()
+    th.testing.assert_close(mean, returns.mean(), rtol=1e-3, atol=1e-3)
+    th.testing.assert_close(var, returns.var(unbiased=False), rtol=1e-3, atol=1e-3)
+    th.testing.assert_close(value_norm.denormalize(value_norm.normalize(returns)), returns)
+    value_norm.update(th.full((500,), 5.0))
+    assert value_norm.mean_var()[1] > 0  # variance floored, never zero
 
 
 def test_spaces_without_the_per_agent_layout_are_rejected():
