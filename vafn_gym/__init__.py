@@ -33,6 +33,18 @@ for _env_id, (_entry_point, _kwargs) in _REGISTRY.items():
     register(id=_env_id, entry_point=_entry_point, kwargs=_kwargs)
     ENV_IDS.append(_env_id)
 
+#: Names served lazily from vafn_gym.multimedia, so that ``import vafn_gym`` never imports torch, librosa or OpenCV.
+_MULTIMEDIA_NAMES = ("InstructionGenerator", "MultimediaStream", "Transcription")
+
+
+def __getattr__(name: str):
+    if name in _MULTIMEDIA_NAMES:
+        from vafn_gym import multimedia
+
+        return getattr(multimedia, name)
+    raise AttributeError(f"module 'vafn_gym' has no attribute {name!r}")
+
+
 __all__ = [
     "ARM_IDS",
     "ENV_IDS",
@@ -40,13 +52,16 @@ __all__ = [
     "TASK_FAMILIES",
     "ArrivalProcess",
     "Instruction",
+    "InstructionGenerator",
     "InstructionQueue",
+    "MultimediaStream",
     "PoissonArrivals",
     "QueueFullError",
     "QueuedInstruction",
     "ScheduledArrivals",
     "ScriptedController",
     "TaskSampler",
+    "Transcription",
     "Waypoint",
     "difficulty_of",
 ]
