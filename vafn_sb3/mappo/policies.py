@@ -126,6 +126,8 @@ class MAPPOPolicy(ActorCriticPolicy):
         kwargs.setdefault("activation_fn", nn.ReLU)
         if kwargs.get("use_sde", False):
             raise ValueError("MAPPO uses a state-independent Gaussian; gSDE is not supported")
+        if not kwargs.get("share_features_extractor", True):
+            raise ValueError("MAPPO's actor and critic split the raw observation themselves; keep share_features_extractor")
         self.layer_norm = layer_norm  # read by _build_mlp_extractor, which ActorCriticPolicy.__init__ calls
         super().__init__(*args, **kwargs)
 
