@@ -71,7 +71,7 @@ def main() -> None:
     parser.add_argument("--split", default="test", choices=["train", "validation", "test"])
     parser.add_argument("--max-length", type=int, default=3)
     parser.add_argument("--k", type=int, help="adaptation rounds per instruction (default: the model's inner_steps)")
-    parser.add_argument("--n-support", type=int, default=50, help="support transitions per instruction (twin env)")
+    parser.add_argument("--n-support", type=int, default=25, help="support transitions per instruction (twin env)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path("runs/online"))
     args = parser.parse_args()
