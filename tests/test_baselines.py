@@ -1,10 +1,13 @@
 """MARL baselines (MAPPO, MADDPG, MAAC) and MTSAC: structure, per-agent losses, learning, save/load, adaptation."""
 
+import copy
+
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
 from stable_baselines3.common.logger import configure
+from stable_baselines3.common.save_util import recursive_getattr
 
 import vafn_gym  # noqa: F401  (registers the env IDs)
 from vafn_gym.constants import ACTION_DIM, NUM_ARMS, OBS_DIM, action_slice, obs_slice
@@ -258,6 +261,9 @@ def test_adapt_fine_tunes_a_copy_and_leaves_the_model_unchanged(trained):
     name, model, env = trained
     assert isinstance(model, Adaptable)
     before = {key: value.clone() for key, value in model.policy.state_dict().items()}
+    optimizer_names = [name for name in model._get_torch_save_params()[0] if name != "policy"]
+    optimizers_before = {name: copy.deepcopy(recursive_getattr(model, name).state_dict()) for name in optimizer_names}
+    variables_before = {name: recursive_getattr(model, name).clone() for name in model._get_torch_save_params()[1]}
     buffers = {name: model.__dict__.get(name) for name in ("replay_buffer", "rollout_buffer")}
     n_updates = model._n_updates
     adapted = model.adapt(env, task="2,1", n_support=40, k=2, seed=SEED)
@@ -265,6 +271,12 @@ def test_adapt_fine_tunes_a_copy_and_leaves_the_model_unchanged(trained):
     after = model.policy.state_dict()
     assert all(th.equal(before[key], after[key]) for key in before), f"{name}: adapt changed the model"
     assert model._n_updates == n_updates
+    assert all(th.equal(value, recursive_getattr(model, name)) for name, value in variables_before.items())
+    for name, state in optimizers_before.items():
+        after_state = recursive_getattr(model, name).state_dict()
+        for param_id, param_state in state["state"].items():
+            for key, value in param_state.items():
+                assert th.equal(th.as_tensor(value), th.as_tensor(after_state["state"][param_id][key])), f"{name} changed"
     assert all(model.__dict__.get(name) is buffer for name, buffer in buffers.items())
     changed = [key for key in before if not th.equal(before[key], adapted.state_dict()[key])]
     assert changed, f"{name}: k=2 fine-tuning steps changed no parameter"
