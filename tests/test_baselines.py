@@ -286,6 +286,22 @@ def test_adapt_fine_tunes_a_copy_and_leaves_the_model_unchanged(trained):
     assert adapted.predict(obs, deterministic=True)[0].shape == (ACTION_DIM,)
 
 
+def test_sgd_fine_tuning_variant_swaps_optimisers_only_during_adapt(trained, monkeypatch):
+    name, model, env = trained
+    before = {key: value.clone() for key, value in model.policy.state_dict().items()}
+    optimizers = {n: recursive_getattr(model, n) for n in model._optimizer_names()}
+    schedule = model.lr_schedule
+    adam = model.adapt(env, task="2,1", n_support=40, k=2, seed=SEED)
+    monkeypatch.setattr(model, "finetune_sgd_lr", 1e-2, raising=False)
+    sgd = model.adapt(env, task="2,1", n_support=40, k=2, seed=SEED)
+    assert all(th.equal(before[key], value) for key, value in model.policy.state_dict().items())
+    assert all(recursive_getattr(model, n) is optimizer for n, optimizer in optimizers.items())
+    assert model.lr_schedule is schedule
+    changed = [k for k in before if not th.equal(before[k], sgd.state_dict()[k])]
+    assert changed, f"{name}: SGD fine-tuning changed no parameter"
+    assert any(not th.equal(adam.state_dict()[k], sgd.state_dict()[k]) for k in changed), f"{name}: SGD == Adam"
+
+
 def test_shared_adaptation_protocol_runs_for_every_baseline(trained):
     name, model, _ = trained
     rows = evaluate_adaptation(

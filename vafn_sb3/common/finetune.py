@@ -20,8 +20,9 @@ import torch as th
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.logger import Logger, configure
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.save_util import recursive_getattr, recursive_setattr
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
-from stable_baselines3.common.save_util import recursive_getattr
+from stable_baselines3.common.utils import ConstantSchedule
 from stable_baselines3.common.vec_env import VecNormalize
 
 from vafn_gym.instructions import Instruction
@@ -102,7 +103,11 @@ class FineTuneAdaptation:
     """
 
     #: Plain attributes that ``_fine_tune`` may replace temporarily; restored after adaptation.
-    _adaptation_attributes: tuple[str, ...] = ("_n_updates", "replay_buffer")
+    _adaptation_attributes: tuple[str, ...] = ("_n_updates", "replay_buffer", "lr_schedule")
+    #: ``None``: fine-tune with the algorithm's own optimisers (Adam) at its learning rate. A float: plain SGD with this
+    #: step size for every optimiser instead, the "SGD at the inner learning rate" variant of
+    #: ``shared/notes/algorithms-maml-marl.md`` §2.3 (set it on the model, e.g. to MAML-SAC's inner step size).
+    finetune_sgd_lr: float | None = None
 
     def adapt(
         self,
@@ -130,6 +135,8 @@ class FineTuneAdaptation:
                 if seed is not None:
                     th.manual_seed(seed)
                 self._logger = configure(folder=None, format_strings=[])
+                if self.finetune_sgd_lr is not None:
+                    self._use_sgd(self.finetune_sgd_lr)
                 if k > 0:
                     self._fine_tune(support, k)
             adapted = _copy_policy(self.policy)
@@ -154,6 +161,20 @@ class FineTuneAdaptation:
         self.replay_buffer = support_replay_buffer(self, support)
         self.train(gradient_steps=k, batch_size=len(support))
 
+    def _use_sgd(self, lr: float) -> None:
+        """Replace every optimiser by plain SGD over the same parameters, at a constant step size ``lr``."""
+        if lr <= 0:
+            raise ValueError(f"finetune_sgd_lr must be > 0, got {lr}")
+        for name in self._optimizer_names():
+            optimizer = recursive_getattr(self, name)
+            parameters = [p for group in optimizer.param_groups for p in group["params"]]
+            recursive_setattr(self, name, th.optim.SGD(parameters, lr=lr))
+        self.lr_schedule = ConstantSchedule(lr)  # train() re-applies lr_schedule to every optimiser
+
+    def _optimizer_names(self) -> list[str]:
+        """Dotted names of the optimisers SB3 saves (e.g. ``actor.optimizer``, ``ent_coef_optimizer``)."""
+        return [name for name in self._get_torch_save_params()[0] if name.split(".")[-1].endswith("optimizer")]
+
     def _snapshot(self) -> dict[str, Any]:
         """Deep copies of every torch state SB3 would save, the logger, the training mode and the swappable attributes."""
         state_dicts, variables = self._get_torch_save_params()
@@ -161,12 +182,15 @@ class FineTuneAdaptation:
             "state_dicts": {name: copy.deepcopy(recursive_getattr(self, name).state_dict()) for name in state_dicts},
             "variables": {name: recursive_getattr(self, name).detach().clone() for name in variables},
             "attributes": {name: getattr(self, name) for name in self._adaptation_attributes if hasattr(self, name)},
+            "optimizers": {name: recursive_getattr(self, name) for name in self._optimizer_names()},
             "logger": getattr(self, "_logger", None),
             "training": self.policy.training,
         }
 
     def _restore(self, saved: dict[str, Any]) -> None:
-        """Put back everything :meth:`_snapshot` recorded."""
+        """Put back everything :meth:`_snapshot` recorded (the optimiser objects first, then their states)."""
+        for name, optimizer in saved["optimizers"].items():
+            recursive_setattr(self, name, optimizer)
         for name, state in saved["state_dicts"].items():
             recursive_getattr(self, name).load_state_dict(state)
         for name, value in saved["variables"].items():

@@ -59,7 +59,7 @@ class MAPPO(FineTuneAdaptation, PPO):
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MAPPOPolicy}
     policy: MAPPOPolicy
     rollout_buffer: AgentRolloutBuffer
-    _adaptation_attributes = ("_n_updates", "rollout_buffer", "n_epochs", "batch_size")
+    _adaptation_attributes = (*FineTuneAdaptation._adaptation_attributes, "rollout_buffer", "n_epochs", "batch_size")
 
     def __init__(
         self,
