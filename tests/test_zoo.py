@@ -235,12 +235,16 @@ def test_meta_eval_callback_logs_post_adaptation_performance(tmp_path: Path) -> 
         MetaEvalCallback(k_values=(-1,))
 
 
-def test_reproduce_smoke_writes_every_artefact(tmp_path: Path) -> None:
-    result = subprocess.run(
+def _reproduce_smoke(tmp_path: Path, *extra: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
         [PYTHON, str(REPO_ROOT / "zoo" / "reproduce.py"), "--smoke", "--algos", "maml_sac", "mappo", "--jobs", "2",
-         "--work", str(tmp_path / "work"), "--out", str(tmp_path / "results")],
+         "--work", str(tmp_path / "work"), "--out", str(tmp_path / "results"), *extra],
         env=SUBPROCESS_ENV, capture_output=True, text=True, timeout=600,
     )
+
+
+def test_reproduce_smoke_writes_every_artefact(tmp_path: Path) -> None:
+    result = _reproduce_smoke(tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     out = tmp_path / "results"
     for name in ("fig3_adaptation.png", "fig3_adaptation.csv", "fig3_adaptation_summary.csv", "fig4_online_maml_sac.png",
@@ -251,3 +255,10 @@ def test_reproduce_smoke_writes_every_artefact(tmp_path: Path) -> None:
     summary = (out / "SUMMARY.md").read_text()
     assert "FAILED" not in summary and "Not produced" not in summary, summary
     assert "| maml_sac |" in summary and "| scripted |" in summary and "Paper:" in summary
+
+    again = _reproduce_smoke(tmp_path)
+    assert again.returncode != 0 and "--resume" in again.stderr + again.stdout, "an earlier run must not be overwritten"
+    resumed = _reproduce_smoke(tmp_path, "--resume", "--skip-table1")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    runs = sorted(p.name for p in (tmp_path / "work" / "logs").glob("seed0/*/*") if p.is_dir())
+    assert runs == ["VAFN-ThreeArmReachHidden-v0_1"] * 2, f"--resume retrained: {runs}"

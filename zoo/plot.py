@@ -31,6 +31,7 @@ TB_TAGS: dict[str, tuple[str, ...]] = {
 }
 #: metric -> key of the zoo's evaluations.npz.
 NPZ_KEYS: dict[str, str] = {"return": "results", "success": "successes", "collision": "collisions"}
+RATE_METRICS = ("success", "collision")
 LABELS: dict[str, str] = {"return": "episode return", "success": "success rate", "collision": "collision rate"}
 CONFIDENCE = 0.95
 GRID_POINTS = 100
@@ -125,7 +126,8 @@ def aggregate(curves: list[Curve], grid_points: int = GRID_POINTS) -> Aggregate:
 
 
 def plot_metric(
-    per_algo: dict[str, Aggregate], ylabel: str, path: Path, title: str = "", xlabel: str = "environment steps"
+    per_algo: dict[str, Aggregate], ylabel: str, path: Path, title: str = "", xlabel: str = "environment steps",
+    rate: bool = False,
 ) -> Path:
     """One PNG: a mean line and a shaded 95 % CI per algorithm (one colour each)."""
     import matplotlib
@@ -142,6 +144,8 @@ def plot_metric(
             ax.fill_between(agg.x, agg.low, agg.high, color=colour, alpha=0.2)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
+    if rate:
+        ax.set_ylim(-0.05, 1.05)
     ax.set_title(title, fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
@@ -165,17 +169,25 @@ def write_curves_csv(aggregates: dict[str, dict[str, Aggregate]], path: Path) ->
     return path
 
 
+def clip_rate(agg: Aggregate) -> Aggregate:
+    """The same aggregate with its CI clipped to [0, 1] (for success and collision rates)."""
+    return Aggregate(agg.x, agg.mean, np.clip(agg.low, 0.0, 1.0), np.clip(agg.high, 0.0, 1.0), agg.n_runs)
+
+
 def make_plots(curves: dict[str, dict[str, list[Curve]]], out: Path, title: str = "") -> list[Path]:
     """Aggregate and plot every metric that has data; returns the written files (PNGs, then the CSV)."""
     aggregates = {
-        metric: {algo: aggregate(runs) for algo, runs in per_algo.items() if runs}
+        metric: {
+            algo: clip_rate(aggregate(runs)) if metric in RATE_METRICS else aggregate(runs)
+            for algo, runs in per_algo.items() if runs
+        }
         for metric, per_algo in curves.items()
     }
     aggregates = {metric: per_algo for metric, per_algo in aggregates.items() if per_algo}
     if not aggregates:
         raise ValueError("none of the runs logged return, success or collision")
     written = [
-        plot_metric(per_algo, LABELS[metric], out.parent / f"{out.name}_{metric}.png", title)
+        plot_metric(per_algo, LABELS[metric], out.parent / f"{out.name}_{metric}.png", title, rate=metric in RATE_METRICS)
         for metric, per_algo in aggregates.items()
     ]
     written.append(write_curves_csv(aggregates, out.parent / f"{out.name}_curves.csv"))
