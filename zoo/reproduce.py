@@ -473,8 +473,8 @@ def write_summary(mode: Mode, jobs: list[Job], aggregates: dict[str, dict[str, A
     else:
         lines += [f"Not produced: {table['message'].strip()[-800:]}"]
     if mode.name != "full":
-        lines += ["", f"These are {mode.name}-mode numbers (short budgets, fewer seeds/items); run `--full` for the "
-                  "numbers the README reports."]
+        lines += ["", f"These are {mode.name}-mode numbers (short budgets, fewer seeds/items); run `--full` (5 seeds, 20k "
+                  "steps per algorithm, 5 tasks) for the comparison the paper makes."]
     path = out / "SUMMARY.md"
     path.write_text("\n".join(lines) + "\n")
     return path
