@@ -32,12 +32,7 @@ def main() -> None:
         stats: dict[str, list[tuple[bool, bool, int]]] = defaultdict(list)
         start = time.perf_counter()
         for seed in tqdm(range(args.episodes), desc=env_id, leave=False):
-            obs, info = env.reset(seed=seed)
-            controller.reset()
-            done = False
-            while not done:
-                obs, _, terminated, truncated, info = env.step(controller.act(obs))
-                done = terminated or truncated
+            info = controller.run_episode(env, seed)
             stats[info["instruction"].difficulty].append((info["is_success"], info["collided"], env.unwrapped.steps))
         stats["all"] = [row for rows in list(stats.values()) for row in rows]
         for difficulty in ("easy", "medium", "hard", "all"):

@@ -30,15 +30,8 @@ def reach():
     env.close()
 
 
-def run_scripted(env, seed, controller=None):
-    controller = controller or ScriptedController()
-    obs, info = env.reset(seed=seed)
-    controller.reset()
-    done = False
-    while not done:
-        obs, _, terminated, truncated, info = env.step(controller.act(obs))
-        done = terminated or truncated
-    return info
+def run_scripted(env, seed):
+    return ScriptedController().run_episode(env, seed)
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)

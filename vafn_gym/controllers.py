@@ -97,6 +97,16 @@ class ScriptedController:
             action[action_slice(active)] = command
         return action.astype(np.float32)
 
+    def run_episode(self, env, seed: int | None = None) -> dict:
+        """Run one whole episode of ``env`` (reset with ``seed``) and return the last step's ``info``."""
+        obs, info = env.reset(seed=seed)
+        self.reset()
+        done = False
+        while not done:
+            obs, _, terminated, truncated, info = env.step(self.act(obs))
+            done = terminated or truncated
+        return info
+
     def predict(self, observation: np.ndarray, state=None, episode_start=None, deterministic: bool = True):
         """SB3-style ``predict``: returns ``(action, None)``; batched observations give batched actions."""
         obs = np.asarray(observation)
