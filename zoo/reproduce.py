@@ -40,7 +40,7 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from vafn_gym.constants import ARM_IDS, SUCCESS_TOLERANCE  # noqa: E402
-from zoo.plot import Aggregate, aggregate, Curve, load_tensorboard, make_plots  # noqa: E402
+from zoo.plot import Aggregate, Curve, confidence_half_width, load_tensorboard, make_plots  # noqa: E402
 
 #: The algorithms of Fig. 3, MAML-SAC first (the paper's comparison set).
 FIG3_ALGOS = ("maml_sac", "maac", "mappo", "maddpg", "mtsac")
@@ -221,8 +221,6 @@ def fig3_aggregates(rows: list[dict[str, Any]]) -> dict[str, dict[str, Aggregate
 
 
 def _mean_ci(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    from zoo.plot import confidence_half_width
-
     mean, half = values.mean(axis=0), confidence_half_width(values)
     return mean, mean - half, mean + half
 
