@@ -262,3 +262,22 @@ def test_reproduce_smoke_writes_every_artefact(tmp_path: Path) -> None:
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     runs = sorted(p.name for p in (tmp_path / "work" / "logs").glob("seed0/*/*") if p.is_dir())
     assert runs == ["VAFN-ThreeArmReachHidden-v0_1"] * 2, f"--resume retrained: {runs}"
+
+
+@pytest.mark.parametrize("algo", ALL_ALGOS)
+def test_every_sampler_builds_a_valid_model_and_its_converter_agrees(algo: str) -> None:
+    import gymnasium as gym
+    from rl_zoo3.hyperparams_opt import HYPERPARAMS_CONVERTER, HYPERPARAMS_SAMPLER
+    from rl_zoo3.utils import ALGOS
+
+    register_algorithms()
+    study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
+    env = gym.make(ENV_ID, max_length=1)
+    for _ in range(3):
+        trial = study.ask()
+        sampled = HYPERPARAMS_SAMPLER[algo](trial, 9, 1, {"using_her_replay_buffer": False, "her_kwargs": {}})
+        assert HYPERPARAMS_CONVERTER[algo](trial.params) == sampled, "--trial-id would not rebuild the trial's values"
+        model = ALGOS[algo]("MlpPolicy", env, **sampled)
+        assert model.gamma == pytest.approx(sampled["gamma"])
+        study.tell(trial, 0.0)
+    env.close()
