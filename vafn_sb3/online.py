@@ -168,7 +168,7 @@ class OnlineController:
                 self._begin(item)
                 # The instruction changed the phase flags and targets: observe again before acting (the stream has no
                 # public "observe" yet, so its observation builder is called directly).
-                self._obs = self.stream._observation(self.stream._positions())
+                self._obs = self.stream.observe()
         if self._current is None:
             action = self.hold_action
         else:

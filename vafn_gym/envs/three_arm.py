@@ -177,6 +177,10 @@ class ThreeArmEnv(gym.Env):
             obs[OBS_DIM:] = self.current_target(self.active_arm)
         return np.clip(obs, self.observation_space.low, self.observation_space.high).astype(np.float32)
 
+    def observe(self) -> np.ndarray:
+        """The current observation, without stepping (e.g. after a controller starts an instruction)."""
+        return self._observation(self._positions())
+
     # --- Meta-World-style task API ---
     def set_task(self, task: Any) -> None:
         """Use ``task`` (anything :meth:`Instruction.coerce` accepts; ``None`` = sample) from the next reset on."""
