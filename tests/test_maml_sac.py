@@ -138,7 +138,7 @@ def test_learn_vecenv_tensorboard_save_load(tmp_path):
     saved_state = model.inner_lr_optimizer.state_dict()["state"][0]
     loaded_state = loaded.inner_lr_optimizer.state_dict()["state"][0]
     assert torch.equal(saved_state["exp_avg"], loaded_state["exp_avg"])
-    loaded.learn(100, reset_num_timesteps=False)  # training continues from the loaded state
+    loaded.learn(100, reset_num_timesteps=False, log_interval=None)  # continues; None = zoo "--log-interval -2"
 
 
 def snapshot(model: MAMLSAC) -> list[torch.Tensor]:

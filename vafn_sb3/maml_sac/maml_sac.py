@@ -484,7 +484,7 @@ class MAMLSAC(SAC):
         self: SelfMAMLSAC,
         total_timesteps: int,
         callback: MaybeCallback = None,
-        log_interval: int = 4,
+        log_interval: int | None = 4,
         tb_log_name: str = "MAMLSAC",
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
@@ -493,7 +493,8 @@ class MAMLSAC(SAC):
 
         :param total_timesteps: env steps in total (support, query and warm-up interaction all count).
         :param callback: SB3 callback(s), called after every env step.
-        :param log_interval: dump the logs every this many meta-iterations (warm-up: episodes, as in SAC).
+        :param log_interval: dump the logs every this many meta-iterations (warm-up: episodes, as in SAC); ``None``
+            never dumps them (what the zoo passes for ``--log-interval -2``).
         :param tb_log_name: TensorBoard run name.
         :param reset_num_timesteps: start the step counter (and the TensorBoard run) anew.
         :param progress_bar: show a progress bar (needs tqdm and rich).
@@ -516,7 +517,7 @@ class MAMLSAC(SAC):
                 continue
             if not self._meta_iteration(callback):
                 break
-            if self.meta_iterations % log_interval == 0:
+            if log_interval is not None and self.meta_iterations % log_interval == 0:
                 self._record_adaptation_stats()
                 self.dump_logs()
         self.env.env_method("set_task", None)
