@@ -8,3 +8,19 @@ from vafn_sb3.maml_sac import MAMLSAC
 from vafn_sb3.mappo import MAPPO
 from vafn_sb3.mtsac import MTSAC
 from vafn_sb3.online import OnlineController
+
+__all__ = [
+    "MAAC",
+    "MADDPG",
+    "MAMLSAC",
+    "MAPPO",
+    "MTSAC",
+    "Adaptable",
+    "AdaptedPolicy",
+    "MetaEvalCallback",
+    "OnlineController",
+    "RolloutCollisionCallback",
+    "SuccessCollisionEvalCallback",
+    "collect_support",
+    "evaluate_adaptation",
+]
