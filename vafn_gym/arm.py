@@ -57,12 +57,15 @@ class Arm:
         """Current end-effector position (world metres)."""
         return self.sim.link_position(self.body, EE_LINK)
 
-    def command_velocity(self, velocity: np.ndarray, dt: float) -> np.ndarray:
-        """Integrate an EE velocity over ``dt``, clip to the workspace, solve IK and set joint targets.
+    def command_velocity(self, velocity: np.ndarray, dt: float, position: np.ndarray) -> np.ndarray:
+        """Integrate an EE velocity over ``dt`` from ``position``, clip to the workspace, solve IK, set joint targets.
 
+        :param velocity: end-effector velocity (m/s).
+        :param dt: control step (s).
+        :param position: the current end-effector position (the caller has just read it).
         :return: the commanded end-effector point.
         """
-        target = np.clip(self.ee_position + velocity * dt, WORKSPACE_LOW, WORKSPACE_HIGH)
+        target = np.clip(position + velocity * dt, WORKSPACE_LOW, WORKSPACE_HIGH)
         joints = self.sim.inverse_kinematics(
             self.body, EE_LINK, target, REST_POSE, self.limits, iterations=STEP_IK_ITERATIONS
         )[: len(JOINTS)]

@@ -6,7 +6,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from vafn_gym.envs.three_arm import BASE_EPISODE_STEPS, STEPS_PER_WAYPOINT, ThreeArmEnv
+from vafn_gym.envs.three_arm import ThreeArmEnv
 from vafn_gym.instructions import Instruction
 from vafn_gym.queue import ArrivalProcess, InstructionQueue, PoissonArrivals, QueuedInstruction, ScheduledArrivals
 
@@ -92,7 +92,8 @@ class ThreeArmStreamEnv(ThreeArmEnv):
         self._hold()
         self._pump()
         positions = self._positions()
-        return self._observation(positions), self._stream_info(positions, False, [])
+        distances = self._distances(positions)
+        return self._observation(positions, distances), self._stream_info(distances, False, [])
 
     def _hold(self) -> None:
         self.current = None
@@ -144,7 +145,7 @@ class ThreeArmStreamEnv(ThreeArmEnv):
         """Steps allowed for the current instruction."""
         if self.instruction_timeout is not None:
             return self.instruction_timeout
-        return BASE_EPISODE_STEPS + STEPS_PER_WAYPOINT * len(self.instruction)
+        return self.default_instruction_budget()
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
         """One control step; finished or timed-out instructions are recorded and the next one starts."""
@@ -158,10 +159,12 @@ class ThreeArmStreamEnv(ThreeArmEnv):
         self._pump()
         terminated = bool(collision and self.terminate_on_collision)
         truncated = not terminated and self.total_steps >= self.horizon
-        return self._observation(positions), reward, terminated, truncated, self._stream_info(positions, collision, events)
+        distances = self._distances(positions)
+        info = self._stream_info(distances, collision, events)
+        return self._observation(positions, distances), reward, terminated, truncated, info
 
-    def _stream_info(self, positions: dict[int, np.ndarray], collision: bool, events: list[dict]) -> dict[str, Any]:
-        info = self._info(positions, collision)
+    def _stream_info(self, distances: np.ndarray, collision: bool, events: list[dict]) -> dict[str, Any]:
+        info = self._info(distances, collision)
         info.update(
             is_success=all(r["success"] for r in self.records),
             holding=self.holding,

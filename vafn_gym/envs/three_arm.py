@@ -150,9 +150,9 @@ class ThreeArmEnv(gym.Env):
 
     def current_target(self, arm_id: int) -> np.ndarray:
         """Arm ``arm_id``'s current target: its next pending waypoint's target, or its home point when it has none."""
-        for waypoint in self.instruction[self.waypoint_index :]:
-            if waypoint.arm == arm_id:
-                return waypoint.target_array
+        for index in range(self.waypoint_index, len(self.instruction)):
+            if self.instruction[index].arm == arm_id:
+                return self.instruction[index].target_array
         return self.arms[arm_id].home
 
     def phase(self, arm_id: int) -> int:
@@ -166,12 +166,16 @@ class ThreeArmEnv(gym.Env):
     def _positions(self) -> dict[int, np.ndarray]:
         return {arm_id: arm.ee_position for arm_id, arm in self.arms.items()}
 
-    def _observation(self, positions: dict[int, np.ndarray]) -> np.ndarray:
+    def _distances(self, positions: dict[int, np.ndarray]) -> np.ndarray:
+        """Distance of each arm (in ``ARM_IDS`` order) to its current target."""
+        return np.array([np.linalg.norm(positions[arm_id] - self.current_target(arm_id)) for arm_id in ARM_IDS])
+
+    def _observation(self, positions: dict[int, np.ndarray], distances: np.ndarray) -> np.ndarray:
         obs = np.zeros(self.observation_space.shape, dtype=np.float64)
-        for arm_id, position in positions.items():
+        for arm_id, distance in zip(ARM_IDS, distances):
             block = obs[obs_slice(arm_id)]
-            block[POS_SLICE] = position
-            block[DIST_INDEX] = np.linalg.norm(position - self.current_target(arm_id))
+            block[POS_SLICE] = positions[arm_id]
+            block[DIST_INDEX] = distance
             block[PHASE_INDEX] = self.phase(arm_id)
         if self.task_family == "goal_visible" and self.active_arm is not None:
             obs[OBS_DIM:] = self.current_target(self.active_arm)
@@ -179,7 +183,8 @@ class ThreeArmEnv(gym.Env):
 
     def observe(self) -> np.ndarray:
         """The current observation, without stepping (e.g. after a controller starts an instruction)."""
-        return self._observation(self._positions())
+        positions = self._positions()
+        return self._observation(positions, self._distances(positions))
 
     # --- Meta-World-style task API ---
     def set_task(self, task: Any) -> None:
@@ -207,7 +212,8 @@ class ThreeArmEnv(gym.Env):
             arm.reset()
         self._start_instruction(instruction)
         positions = self._positions()
-        return self._observation(positions), self._info(positions, collision=False)
+        distances = self._distances(positions)
+        return self._observation(positions, distances), self._info(distances, collision=False)
 
     def _start_instruction(self, instruction: Instruction) -> None:
         self.instruction = instruction
@@ -220,6 +226,10 @@ class ThreeArmEnv(gym.Env):
         """Truncation horizon of the current episode."""
         if self.fixed_max_episode_steps is not None:
             return self.fixed_max_episode_steps
+        return self.default_instruction_budget()
+
+    def default_instruction_budget(self) -> int:
+        """Steps the current instruction gets by default: ``50 + 80 * len(instruction)``."""
         return BASE_EPISODE_STEPS + STEPS_PER_WAYPOINT * len(self.instruction)
 
     def _update_markers(self) -> None:
@@ -235,9 +245,9 @@ class ThreeArmEnv(gym.Env):
             raise ValueError(f"action has non-finite entries at indices {bad}; nothing was sent to the simulator")
         return np.clip(action, -1.0, 1.0)
 
-    def _apply_action(self, action: np.ndarray) -> None:
+    def _apply_action(self, action: np.ndarray, positions: dict[int, np.ndarray]) -> None:
         for arm_id, arm in self.arms.items():
-            arm.command_velocity(action[action_slice(arm_id)] * V_MAX, self.sim.dt)
+            arm.command_velocity(action[action_slice(arm_id)] * V_MAX, self.sim.dt, positions[arm_id])
         self.sim.step()
 
     def _arm_contact(self) -> bool:
@@ -254,18 +264,20 @@ class ThreeArmEnv(gym.Env):
         positions, reward, collision = self._advance(action)
         terminated = self.active_arm is None or (collision and self.terminate_on_collision)
         truncated = not terminated and self.steps >= self.max_episode_steps()
-        return self._observation(positions), reward, terminated, truncated, self._info(positions, collision)
+        distances = self._distances(positions)
+        return self._observation(positions, distances), reward, terminated, truncated, self._info(distances, collision)
 
     def _advance(self, action: Any) -> tuple[dict[int, np.ndarray], float, bool]:
         """Validate and apply an action, then advance the waypoint; returns (positions, reward, collision)."""
         action = self._validate_action(action)
         active = self.active_arm
         target = self.current_target(active) if active is not None else None
+        positions_before = self._positions()
         distance_before = distance_after = 0.0
         if active is not None:
-            distance_before = float(np.linalg.norm(self.arms[active].ee_position - target))
+            distance_before = float(np.linalg.norm(positions_before[active] - target))
 
-        self._apply_action(action)
+        self._apply_action(action, positions_before)
         self.steps += 1
         positions = self._positions()
         collision = self._arm_contact()
@@ -291,7 +303,7 @@ class ThreeArmEnv(gym.Env):
         reward -= COLLISION_PENALTY * float(collision) + PROXIMITY_PENALTY * float(self._too_close())
         return float(reward)
 
-    def _info(self, positions: dict[int, np.ndarray], collision: bool) -> dict[str, Any]:
+    def _info(self, distances: np.ndarray, collision: bool) -> dict[str, Any]:
         complete = self.active_arm is None
         return {
             "is_success": bool(complete and not self.collided),
@@ -300,7 +312,7 @@ class ThreeArmEnv(gym.Env):
             "active_arm": self.active_arm,
             "waypoint_index": self.waypoint_index,
             "instruction": self.instruction,
-            "distances": np.array([np.linalg.norm(positions[i] - self.current_target(i)) for i in ARM_IDS]),
+            "distances": distances,
         }
 
     # --- rendering ---
