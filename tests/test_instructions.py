@@ -96,6 +96,14 @@ def test_immutable_and_hashable():
         Waypoint(1, tuple(WORKSPACE_HIGH + 1))
 
 
+@pytest.mark.parametrize("value", [None, 5, 2.5])
+def test_coerce_rejects_non_instructions_with_value_error(value):
+    with pytest.raises(ValueError, match="cannot interpret"):
+        Instruction.coerce(value)
+    with pytest.raises(ValueError, match="not a sequence of 3-D points"):
+        Instruction.from_arms([1], targets=7)
+
+
 def test_coerce():
     instruction = Instruction.parse("3,2")
     assert Instruction.coerce(instruction) is instruction

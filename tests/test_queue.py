@@ -160,7 +160,7 @@ def test_validate_false_defers_the_error_to_the_consumer():
     with pytest.raises(ValueError, match="arm"):
         _ = queue.dequeue().instruction
     with pytest.raises(ValueError):
-        _ = queue.enqueue(None, validate=False).instruction  # a TypeError inside coerce is reported as ValueError
+        _ = queue.enqueue(None, validate=False).instruction  # not a sequence of arm ids
     assert queue.dequeue().instruction == Instruction.from_arms([3, 1])
 
 

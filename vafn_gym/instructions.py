@@ -101,14 +101,20 @@ class Instruction(Sequence[Waypoint]):
         """Build from arm ids (``[2, 3, 1]``) and optional per-waypoint targets (default: each arm's default target)."""
         if isinstance(arms, (str, bytes)):
             raise ValueError("from_arms expects a sequence of integers; use Instruction.parse for strings")
-        arm_list = list(arms)
+        try:
+            arm_list = list(arms)
+        except TypeError:
+            raise ValueError(f"cannot interpret {arms!r} as an instruction: expected a sequence of arm ids") from None
         if len(arm_list) > MAX_INSTRUCTION_LENGTH:
             raise ValueError(f"instruction has {len(arm_list)} waypoints; at most {MAX_INSTRUCTION_LENGTH} are allowed")
         arm_ids = [_check_arm(value, position) for position, value in enumerate(arm_list)]
         if targets is None:
             target_list = [default_target(arm) for arm in arm_ids]
         else:
-            target_list = list(targets)
+            try:
+                target_list = list(targets)
+            except TypeError:
+                raise ValueError(f"targets {targets!r} are not a sequence of 3-D points") from None
             if len(target_list) != len(arm_ids):
                 raise ValueError(f"{len(arm_ids)} arms but {len(target_list)} targets")
         return cls(

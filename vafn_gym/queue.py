@@ -43,14 +43,6 @@ class QueueFullError(RuntimeError):
     """Raised by :meth:`InstructionQueue.enqueue` when the queue is full and its overflow policy is ``"raise"``."""
 
 
-def _coerce(value: Any) -> Instruction:
-    """``Instruction.coerce`` that reports every malformed payload as ``ValueError`` (e.g. ``None`` or ``5``)."""
-    try:
-        return Instruction.coerce(value)
-    except TypeError as error:
-        raise ValueError(f"cannot interpret {value!r} as an instruction: {error}") from error
-
-
 @dataclass(frozen=True)
 class QueuedInstruction:
     """One queue entry: the producer's payload, when it arrived, its global arrival number and where it came from.
@@ -72,7 +64,7 @@ class QueuedInstruction:
     @property
     def instruction(self) -> Instruction:
         """The payload as an :class:`Instruction`; raises ``ValueError`` for a malformed payload."""
-        return _coerce(self.payload)
+        return Instruction.coerce(self.payload)
 
 
 class InstructionQueue:
@@ -172,7 +164,7 @@ class InstructionQueue:
         :raises QueueFullError: when the queue is full and the policy is ``"raise"``; the queue is then unchanged.
         """
         # Parse outside the lock: it can be slow and never depends on the queue's state.
-        payload = _coerce(item) if validate else item
+        payload = Instruction.coerce(item) if validate else item
         extras = dict(metadata) if metadata is not None else {}
         with self._cond:
             if len(self._items) >= self._capacity:
@@ -325,7 +317,7 @@ class ScheduledArrivals(ArrivalProcess):
             items = []
             for index, element in enumerate(values):
                 try:
-                    items.append(_coerce(element))
+                    items.append(Instruction.coerce(element))
                 except ValueError as error:
                     where = f"schedule step {step}" + ("" if len(values) == 1 else f", instruction {index}")
                     raise ValueError(f"{where}: {error}") from error
@@ -407,7 +399,7 @@ class PoissonArrivals(ArrivalProcess):
             pool_list = []
             for index, element in enumerate(instructions):
                 try:
-                    pool_list.append(_coerce(element))
+                    pool_list.append(Instruction.coerce(element))
                 except ValueError as error:
                     raise ValueError(f"instructions[{index}]: {error}") from error
             if not pool_list:
@@ -452,7 +444,7 @@ class PoissonArrivals(ArrivalProcess):
             if self._sampler is not None:
                 drawn = self._sampler(rng)
                 try:
-                    result.append(_coerce(drawn))
+                    result.append(Instruction.coerce(drawn))
                 except ValueError as error:
                     raise ValueError(f"step {step}: the sampler returned a malformed instruction: {error}") from error
             else:
