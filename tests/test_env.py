@@ -263,3 +263,16 @@ def test_safety_margin_penalises_proximity_without_counting_a_collision():
         gym.make("VAFN/ThreeArmReach-v0", safety_margin=-1)
     plain.close()
     margin.close()
+
+
+def test_stream_reset_keeps_user_items_with_their_stamps_and_drops_its_own_arrivals():
+    env = gym.make("VAFN/ThreeArmStream-v0", arrivals={0: "1", 1: "2"}, auto_dequeue=False, horizon=10)
+    env.reset(seed=0)
+    base = env.unwrapped
+    user_item = base.queue.enqueue("3", source="user")
+    env.step(np.zeros(ACTION_DIM))  # feeds the step-1 arrival
+    env.reset(seed=0)
+    queued = base.queue.snapshot()
+    assert queued[0] == user_item  # same sequence number and arrival time
+    assert [e.payload.arms for e in queued] == [(3,), (1,)]  # the old arrivals were dropped, step 0 fed again
+    env.close()

@@ -455,3 +455,15 @@ def test_arrivals_reject_bad_steps(step):
         PoissonArrivals(rate=1.0, instructions=["1"], seed=0).arrivals(step)
     with pytest.raises(ValueError):
         ScheduledArrivals({0: "1"}).arrivals(step)
+
+
+def test_discard_removes_matching_entries_and_keeps_the_rest_untouched():
+    queue = InstructionQueue()
+    kept = queue.enqueue("1", source="user")
+    queue.enqueue("2", source="process")
+    later = queue.enqueue("3", source="user")
+    removed = queue.discard(lambda entry: entry.source == "process")
+    assert [e.payload.arms for e in removed] == [(2,)]
+    assert queue.snapshot() == [kept, later]  # same entries: sequence numbers and timestamps unchanged
+    assert queue.cleared == 1 and queue.enqueued == queue.dequeued + queue.dropped + queue.cleared + len(queue)
+    assert queue.discard(lambda entry: False) == []

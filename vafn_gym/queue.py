@@ -222,6 +222,20 @@ class InstructionQueue:
             self._cleared += len(items)
             return items
 
+    def discard(self, predicate: Callable[[QueuedInstruction], bool]) -> list[QueuedInstruction]:
+        """Remove the entries for which ``predicate`` is true and return them; the others keep their place and stamps.
+
+        Removed entries are counted in :attr:`cleared`.
+
+        :param predicate: called on each entry, under the lock (keep it cheap and free of queue calls).
+        """
+        with self._cond:
+            removed = [entry for entry in self._items if predicate(entry)]
+            if removed:
+                self._items = deque(entry for entry in self._items if not predicate(entry))
+                self._cleared += len(removed)
+            return removed
+
     @property
     def holding(self) -> bool:
         """Whether the controller must hold: ``True`` exactly when the queue is empty."""

@@ -82,9 +82,7 @@ class ThreeArmStreamEnv(ThreeArmEnv):
         super(ThreeArmEnv, self).reset(seed=seed)
         if self.arrival_process is not None:
             self.arrival_process.reset(None if seed is None else int(self.np_random.integers(2**63)))
-        for item in self.queue.clear():
-            if item.source != ARRIVAL_SOURCE:
-                self.queue.enqueue(item.payload, source=item.source, validate=False, metadata=item.metadata)
+        self.queue.discard(lambda item: item.source == ARRIVAL_SOURCE)
         for arm in self.arms.values():
             arm.reset()
         self.total_steps = 0
