@@ -74,6 +74,10 @@ class TaskSampler:
         self.no_adjacent_repeats = no_adjacent_repeats
         self.rng = np.random.default_rng(seed)
         self._orders = [o for o in self._enumerate_orders() if self.split_of(o) == split]
+        self._orders_by_length: dict[int, list[tuple[int, ...]]] = {}
+        for order in self._orders:  # enumeration order is kept inside each length
+            self._orders_by_length.setdefault(len(order), []).append(order)
+        self._lengths = sorted(self._orders_by_length)
         if not self._orders:
             raise ValueError(f"no {split!r} orders of length {min_length}..{max_length}; widen the range or fractions")
 
@@ -114,9 +118,8 @@ class TaskSampler:
         :param rng: draw from this generator instead of the sampler's own stream.
         """
         rng = self.rng if rng is None else rng
-        lengths = sorted({len(o) for o in self._orders})
-        length = lengths[rng.integers(len(lengths))]
-        candidates = [o for o in self._orders if len(o) == length]
+        length = self._lengths[rng.integers(len(self._lengths))]
+        candidates = self._orders_by_length[length]
         order = candidates[rng.integers(len(candidates))]
         if self.family == "order":
             targets = [default_target(arm) for arm in order]
