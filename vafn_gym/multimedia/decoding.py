@@ -28,6 +28,15 @@ class Decoded:
     log_probs: torch.Tensor = field(repr=False)
 
 
+def path_segments(best: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(starts, ends) of the runs of equal labels in a non-empty best path (the collapse step of CTC decoding).
+
+    :param best: (T,) frame-wise argmax labels, T >= 1.
+    """
+    starts = np.flatnonzero(np.r_[True, best[1:] != best[:-1]])
+    return starts, np.r_[starts[1:], len(best)]
+
+
 def greedy_decode(phi: torch.Tensor, logits: torch.Tensor) -> Decoded:
     """Best-path CTC decoding of one sequence.
 
@@ -41,8 +50,7 @@ def greedy_decode(phi: torch.Tensor, logits: torch.Tensor) -> Decoded:
     if length == 0:
         return Decoded([], [], [], phi.new_zeros((0, phi.shape[-1])), 0.0, log_probs)
     best_prob = probs[np.arange(length), best]
-    starts = np.flatnonzero(np.r_[True, best[1:] != best[:-1]])  # segment starts of the best path
-    ends = np.r_[starts[1:], length]
+    starts, ends = path_segments(best)
     arms, confidences, peaks, embeddings = [], [], [], []
     phi_np = phi.numpy()
     for start, end in zip(starts, ends):

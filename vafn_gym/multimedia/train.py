@@ -23,34 +23,19 @@ CHECKPOINT_DIR = Path(__file__).parent / "checkpoints"
 CHECKPOINT_NAME = "instruction_model"
 
 
-def _greedy_arms(logits, lengths) -> list[list[int]]:
-    """Best-path CTC decode of a batch (numpy, collapse repeats, drop blanks)."""
-    best = logits.argmax(-1).numpy()
-    out = []
-    for row, length in zip(best, lengths.tolist()):
-        row = row[:length]
-        keep = np.ones(len(row), bool)
-        keep[1:] = row[1:] != row[:-1]
-        out.append([int(x) for x in row[keep] if x != BLANK])
-    return out
+def _greedy_paths(logits, lengths) -> tuple[list[list[int]], list[list[int]]]:
+    """Best-path CTC reading of a batch: each item's arm ids and the frame index of each token's most probable frame."""
+    from vafn_gym.multimedia.decoding import path_segments
 
-
-def _peaks(logits, lengths) -> list[list[int]]:
-    """Frame index of the most probable frame of each emitted token of a greedy path."""
-    probs = logits.softmax(-1).detach().numpy()
-    best = probs.argmax(-1)
-    peaks = []
+    logits = logits.detach()
+    best, probs = logits.argmax(-1).numpy(), logits.softmax(-1).numpy()
+    arms, peaks = [], []
     for row, p, length in zip(best, probs, lengths.tolist()):
-        items, t = [], 0
-        while t < length:
-            end = t + 1
-            while end < length and row[end] == row[t]:
-                end += 1
-            if row[t] != BLANK:
-                items.append(t + int(np.argmax(p[t:end, row[t]])))
-            t = end
-        peaks.append(items)
-    return peaks
+        starts, ends = path_segments(row[:length])
+        tokens = [(int(row[t]), t, end) for t, end in zip(starts, ends) if row[t] != BLANK]
+        arms.append([label for label, _, _ in tokens])
+        peaks.append([int(t + np.argmax(p[t:end, label])) for label, t, end in tokens])
+    return arms, peaks
 
 
 def alignment_losses(model, phi_a, logits_a, len_a, phi_v, logits_v, len_v, targets, target_lengths, temperature, rng):
@@ -64,8 +49,7 @@ def alignment_losses(model, phi_a, logits_a, len_a, phi_v, logits_v, len_v, targ
     import torch
     import torch.nn.functional as F
 
-    reads_a, reads_v = _greedy_arms(logits_a.detach(), len_a), _greedy_arms(logits_v.detach(), len_v)
-    peaks_a, peaks_v = _peaks(logits_a, len_a), _peaks(logits_v, len_v)
+    (reads_a, peaks_a), (reads_v, peaks_v) = _greedy_paths(logits_a, len_a), _greedy_paths(logits_v, len_v)
     rows_a, cols_a, rows_v, cols_v, labels = [], [], [], [], []
     for b in range(len(targets)):
         label = targets[b, : int(target_lengths[b])].tolist()
@@ -109,7 +93,7 @@ def evaluate(model, data, batch_size: int = 64) -> dict[str, float]:
             batch = make_batch(data, indices, None)
             for modality in correct:
                 phi, lengths = model.encode(modality, batch[modality], batch[f"{modality}_lengths"])
-                reads = _greedy_arms(model.decode(phi), lengths)
+                reads, _ = _greedy_paths(model.decode(phi), lengths)
                 for b, read in enumerate(reads):
                     correct[modality] += read == batch["targets"][b, : int(batch["target_lengths"][b])].tolist()
     model.train()
