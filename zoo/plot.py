@@ -120,9 +120,13 @@ def aggregate(curves: list[Curve], grid_points: int = GRID_POINTS) -> Aggregate:
     start = max(c.steps.min() for c in curves)
     stop = min(c.steps.max() for c in curves)
     x = np.linspace(start, stop, grid_points) if stop > start else np.array([stop])
-    stacked = np.stack([np.interp(x, c.steps, c.values) for c in curves])
+    return mean_ci(x, np.stack([np.interp(x, c.steps, c.values) for c in curves]))
+
+
+def mean_ci(x: np.ndarray, stacked: np.ndarray) -> Aggregate:
+    """Mean ± 95 % CI over runs (axis 0) of curves already on the common grid ``x``."""
     mean, half = stacked.mean(axis=0), confidence_half_width(stacked)
-    return Aggregate(x, mean, mean - half, mean + half, len(curves))
+    return Aggregate(x, mean, mean - half, mean + half, stacked.shape[0])
 
 
 def plot_metric(

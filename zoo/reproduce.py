@@ -40,7 +40,7 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from vafn_gym.constants import ARM_IDS, SUCCESS_TOLERANCE  # noqa: E402
-from zoo.plot import Aggregate, Curve, confidence_half_width, load_tensorboard, make_plots  # noqa: E402
+from zoo.plot import Aggregate, Curve, clip_rate, load_tensorboard, make_plots, mean_ci  # noqa: E402
 
 #: The algorithms of Fig. 3, MAML-SAC first (the paper's comparison set).
 FIG3_ALGOS = ("maml_sac", "maac", "mappo", "maddpg", "mtsac")
@@ -213,16 +213,9 @@ def fig3_aggregates(rows: list[dict[str, Any]]) -> dict[str, dict[str, Aggregate
                 values = [np.mean([r[metric] for r in rows if r["algo"] == algo and r["seed"] == seed and r["k"] == k])
                           for k in ks]
                 curves.append(Curve(np.array(ks, float), np.array(values, float)))
-            mean, low, high = _mean_ci(np.stack([c.values for c in curves]))
-            if metric in RATE_METRICS:  # a rate's CI never leaves [0, 1]
-                low, high = np.clip(low, 0.0, 1.0), np.clip(high, 0.0, 1.0)
-            result[metric][algo] = Aggregate(curves[0].steps, mean, low, high, len(curves))
+            agg = mean_ci(curves[0].steps, np.stack([c.values for c in curves]))
+            result[metric][algo] = clip_rate(agg) if metric in RATE_METRICS else agg  # a rate's CI stays in [0, 1]
     return result
-
-
-def _mean_ci(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    mean, half = values.mean(axis=0), confidence_half_width(values)
-    return mean, mean - half, mean + half
 
 
 def plot_fig3(aggregates: dict[str, dict[str, Aggregate]], mode: Mode, path: Path) -> Path:
