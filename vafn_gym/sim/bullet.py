@@ -89,11 +89,6 @@ class BulletSim:
         state = p.getLinkState(body, link, computeForwardKinematics=True, physicsClientId=self.client)
         return np.array(state[4])
 
-    def link_positions(self, body: int, links: list[int]) -> np.ndarray:
-        """World positions of several link frames, shape (len(links), 3)."""
-        states = p.getLinkStates(body, links, computeForwardKinematics=True, physicsClientId=self.client)
-        return np.array([state[4] for state in states])
-
     def reset_joints(self, body: int, joints: list[int], angles: np.ndarray) -> None:
         """Teleport joints to ``angles`` with zero velocity."""
         for joint, angle in zip(joints, angles):
