@@ -66,18 +66,20 @@ def bucketed_batches(data: TrainingData, batch_size: int, rng: np.random.Generat
     return [batches[i] for i in rng.permutation(pool)]
 
 
-def make_batch(data: TrainingData, indices: np.ndarray, rng: Optional[np.random.Generator]) -> dict[str, torch.Tensor]:
-    """Build a training (``rng`` given: augmented) or evaluation (``rng`` None: clean) batch.
+def make_batch(data: TrainingData, indices: np.ndarray, rng: Optional[np.random.Generator],
+               corrupted: bool = False) -> dict[str, torch.Tensor]:
+    """Build a training (``rng`` given: augmented) or evaluation (``rng`` None: clean, or ``corrupted``) batch.
 
     :param data: cached items.
     :param indices: which items.
     :param rng: augmentation randomness; None disables augmentation.
+    :param corrupted: without ``rng``, use every item's noisy audio and Cutout strip instead of the clean ones.
     """
     audio, strips = [], []
     for i in indices:
-        noisy = rng is not None and rng.random() < NOISE_PROBABILITY
+        noisy = rng.random() < NOISE_PROBABILITY if rng is not None else corrupted
         features = (data.noisy_audio[i] if noisy else data.clean_audio[i]).astype(np.float32)
-        use_mask = rng is not None and rng.random() < CUTOUT_PROBABILITY
+        use_mask = rng.random() < CUTOUT_PROBABILITY if rng is not None else corrupted
         strip = (data.masked[i] if use_mask else data.clean[i]).astype(np.float32) / INK_LEVELS
         if rng is not None:
             if rng.random() < SPEC_MASK_PROBABILITY:

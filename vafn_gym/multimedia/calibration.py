@@ -30,22 +30,15 @@ def readings_of(model, data, corrupted: bool, batch_size: int = 64) -> dict[str,
     """
     import torch
 
-    from vafn_gym.multimedia.batching import pad_features, pad_images
-    from vafn_gym.multimedia.dataset import INK_LEVELS
+    from vafn_gym.multimedia.batching import make_batch
     from vafn_gym.multimedia.decoding import greedy_decode
 
     out: dict[str, list] = {"audio": [], "image": []}
-    audio = data.noisy_audio if corrupted else data.clean_audio
-    strips = data.masked if corrupted else data.clean
     with torch.inference_mode():
         for start in range(0, len(data), batch_size):
-            idx = range(start, min(len(data), start + batch_size))
-            inputs = {
-                "audio": pad_features([audio[i].astype(np.float32) for i in idx]),
-                "image": pad_images([strips[i].astype(np.float32) / INK_LEVELS for i in idx]),
-            }
-            for modality, (tensor, lengths) in inputs.items():
-                phi, out_lengths = model.encode(modality, tensor, lengths)
+            batch = make_batch(data, np.arange(start, min(len(data), start + batch_size)), None, corrupted)
+            for modality in out:
+                phi, out_lengths = model.encode(modality, batch[modality], batch[f"{modality}_lengths"])
                 logits = model.decode(phi)
                 out[modality] += [greedy_decode(phi[b, : int(out_lengths[b])], logits[b, : int(out_lengths[b])])
                                   for b in range(len(out_lengths))]
