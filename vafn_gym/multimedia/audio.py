@@ -100,12 +100,14 @@ def load_audio(source: AudioSource, sample_rate: int | None = None) -> Audio:
         raise ValueError(f"audio contains {bad} NaN or infinite samples")
     if waveform.size / rate > MAX_AUDIO_SECONDS:
         raise ValueError(f"audio lasts {waveform.size / rate:.1f} s; at most {MAX_AUDIO_SECONDS:.0f} s are accepted")
-    peak = float(np.max(np.abs(waveform)))
+    magnitude = np.abs(waveform)
+    peak = float(magnitude.max())
     rms = float(np.sqrt(np.mean(np.square(waveform, dtype=np.float64))))
-    if peak == 0.0 or 20 * np.log10(max(rms, 1e-12)) < SILENCE_DBFS:
-        raise ValueError(f"audio is silent (RMS {20 * np.log10(max(rms, 1e-12)):.0f} dBFS < {SILENCE_DBFS:.0f} dBFS)")
+    level_dbfs = 20 * np.log10(max(rms, 1e-12))
+    if peak == 0.0 or level_dbfs < SILENCE_DBFS:
+        raise ValueError(f"audio is silent (RMS {level_dbfs:.0f} dBFS < {SILENCE_DBFS:.0f} dBFS)")
     warnings = []
-    clipped = float(np.mean(np.abs(waveform) >= CLIP_LEVEL))
+    clipped = float(np.mean(magnitude >= CLIP_LEVEL))
     if clipped > CLIP_FRACTION:
         warnings.append(f"audio is clipped ({100 * clipped:.1f}% of samples at full scale)")
     if peak > 1.0 + 1e-3:
