@@ -125,8 +125,8 @@ class MAPPO(FineTuneAdaptation, PPO):
         """``n_epochs`` passes over the rollout with per-agent clipped ratios and the ValueNorm Huber value loss."""
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
-        clip_range = self.clip_range(self._current_progress_remaining)  # type: ignore[operator]
         progress = self._current_progress_remaining
+        clip_range = self.clip_range(progress)  # type: ignore[operator]
         clip_range_vf = None if self.clip_range_vf is None else self.clip_range_vf(progress)  # type: ignore[operator]
         self._prepare_rollout()
         actor_parameters, critic_parameters = self.policy.actor_parameters(), self.policy.critic_parameters()
@@ -152,7 +152,7 @@ class MAPPO(FineTuneAdaptation, PPO):
                 value_loss = value_loss.mean()
 
                 with th.no_grad():
-                    approx_kl = th.mean(th.exp(log_ratio) - 1 - log_ratio).item()
+                    approx_kl = th.mean(ratio - 1 - log_ratio).item()
                 approx_kl_divs.append(approx_kl)
                 if self.target_kl is not None and approx_kl > 1.5 * self.target_kl:
                     continue_training = False
@@ -160,7 +160,8 @@ class MAPPO(FineTuneAdaptation, PPO):
                         print(f"Early stopping at step {epoch} due to reaching max kl: {approx_kl:.2f}")
                     break
 
-                loss = policy_loss - self.ent_coef * entropy.mean() + self.vf_coef * value_loss
+                mean_entropy = entropy.mean()
+                loss = policy_loss - self.ent_coef * mean_entropy + self.vf_coef * value_loss
                 self.policy.optimizer.zero_grad()
                 loss.backward()
                 th.nn.utils.clip_grad_norm_(actor_parameters, self.max_grad_norm)
@@ -168,7 +169,7 @@ class MAPPO(FineTuneAdaptation, PPO):
                 self.policy.optimizer.step()
                 logs["policy_gradient_loss"].append(policy_loss.item())
                 logs["value_loss"].append(value_loss.item())
-                logs["entropy"].append(entropy.mean().item())
+                logs["entropy"].append(mean_entropy.item())
                 logs["clip_fraction"].append(th.mean((th.abs(ratio - 1) > clip_range).float()).item())
             self._n_updates += 1
             if not continue_training:
