@@ -18,6 +18,8 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
 
+from vafn_sb3.common.adaptation import evaluate_adaptation
+
 #: Episodes averaged by the rollout collision rate (SB3's own rollout buffers hold 100 episodes).
 ROLLOUT_WINDOW = 100
 
@@ -170,10 +172,6 @@ class MetaEvalCallback(BaseCallback):
 
     def evaluate(self) -> list[dict[str, Any]]:
         """Run one meta-evaluation now; returns the per-K summary rows."""
-        try:
-            from vafn_sb3.common.adaptation import evaluate_adaptation
-        except ImportError as error:
-            raise ImportError("MetaEvalCallback needs vafn_sb3.common.adaptation.evaluate_adaptation") from error
         assert self.env_id is not None
         results = evaluate_adaptation(
             self.model, self.env_id, self.tasks, n_support=self.n_support, k_values=self.k_values,
