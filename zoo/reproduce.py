@@ -284,19 +284,19 @@ def run_stream(policy: Any, mode: Mode, seed: int, k: int, family: str) -> dict[
     schedule = {index * spacing: code for index, code in enumerate(FIG4_PHASES)}
     env = gym.make(FIG4_ENV, arrivals=schedule, auto_dequeue=False, horizon=mode.fig4_steps, task_family=family)
     controller = OnlineController(policy, env, k=k, n_support=mode.n_support, seed=seed)
-    trace: dict[str, list] = {"distance": [], "active": [], "sequence": []}
+    active: list[int] = []
     try:
         for _ in tqdm(range(mode.fig4_steps), desc="Fig. 4 stream", leave=False):
             info = controller.step()
-            trace["distance"].append(np.asarray(info["distances"], float))
-            trace["active"].append(0 if info["active_arm"] is None else int(info["active_arm"]))
-            trace["sequence"].append(-1 if info["instruction_sequence"] is None else int(info["instruction_sequence"]))
+            active.append(0 if info["active_arm"] is None else int(info["active_arm"]))
         log = [asdict(entry) for entry in controller.log]
     finally:
         controller.close()
         env.close()
-    return {"distance": np.array(trace["distance"]), "active": np.array(trace["active"]),
-            "sequence": np.array(trace["sequence"]), "boundaries": np.array(sorted(schedule)), "log": log}
+    # Distances and running sequence come from the controller's own per-step trace.
+    sequence = [-1 if s is None else int(s) for s in controller.trace["sequence"]]
+    return {"distance": np.array(controller.trace["distances"], float), "active": np.array(active),
+            "sequence": np.array(sequence), "boundaries": np.array(sorted(schedule)), "log": log}
 
 
 def plot_fig4(trace: dict[str, Any], title: str, path: Path) -> Path:
