@@ -345,6 +345,7 @@ class MAMLSAC(SAC):
                 if buffer is not None:
                     buffer.add(self._last_obs, next_obs, scaled, rewards, dones, infos)
             terminated = [bool(d) and not info.get("TimeLimit.truncated", False) for d, info in zip(dones, infos)]
+            collisions = np.array([info.get("collision", False) for info in infos], dtype=bool)
             columns["observations"].append(self._last_obs)
             columns["actions"].append(actions)
             columns["rewards"].append(rewards)
@@ -352,9 +353,9 @@ class MAMLSAC(SAC):
             columns["terminated"].append(terminated)
             columns["episode_ends"].append(dones)
             columns["successes"].append([info.get("is_success", False) for info in infos])
-            columns["collisions"].append([info.get("collision", False) for info in infos])
+            columns["collisions"].append(collisions)
             episode_returns += rewards
-            episode_collided |= np.array([info.get("collision", False) for info in infos])
+            episode_collided |= collisions
             for i, done in enumerate(dones):
                 if done:
                     episode_stats.append({"return": float(episode_returns[i]), "success": float(infos[i].get("is_success", False)),
@@ -386,6 +387,9 @@ class MAMLSAC(SAC):
         actor_params = parameters_of(self.actor_distribution)
         critic_params = parameters_of(self.critic)
         target_params = parameters_of(self.critic_target)
+        optimizers = [self.actor.optimizer, self.critic.optimizer]
+        if self.inner_lr_optimizer is not None:
+            optimizers.append(self.inner_lr_optimizer)
         critic_losses, actor_losses, ent_coefs, ent_coef_losses = [], [], [], []
         for _ in range(self.outer_steps):
             ent_coef = self._ent_coef()
@@ -418,9 +422,6 @@ class MAMLSAC(SAC):
                 critic_loss, actor_loss, log_prob = (torch.stack(column) for column in zip(*per_task))
             critic_loss, actor_loss = critic_loss.mean(), actor_loss.mean()
 
-            optimizers = [self.actor.optimizer, self.critic.optimizer]
-            if self.inner_lr_optimizer is not None:
-                optimizers.append(self.inner_lr_optimizer)
             for optimizer in optimizers:
                 optimizer.zero_grad()
             (critic_loss + actor_loss).backward()
