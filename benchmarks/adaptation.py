@@ -18,13 +18,12 @@ import json
 import time
 from pathlib import Path
 
-import gymnasium as gym
 import numpy as np
 import torch
 from stable_baselines3.common.env_util import make_vec_env
 
 import vafn_gym  # noqa: F401  (registers the env IDs)
-from vafn_gym.tasks import TaskSampler
+from vafn_gym.tasks import TaskSampler, env_task_family
 from vafn_sb3.common.adaptation import evaluate_adaptation
 from vafn_sb3.maml_sac import MAMLSAC
 
@@ -118,7 +117,7 @@ def main() -> None:
         train_seconds = time.perf_counter() - start
         model.save(args.out / "model.zip")
 
-    family = gym.make(args.env, **env_kwargs).unwrapped.task_family
+    family = env_task_family(args.env, env_kwargs)
     tasks = TaskSampler("test", family, 1, args.max_length).fixed_set(args.n_tasks, seed=args.seed)
     start = time.perf_counter()
     rows = evaluate_adaptation(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 from typing import Literal
 
+import gymnasium as gym
 import numpy as np
 
 from vafn_gym.constants import (
@@ -19,6 +20,7 @@ from vafn_gym.instructions import Instruction
 SPLITS = ("train", "validation", "test")
 #: Task families: which parts of an instruction vary between tasks (see the README, "Task families").
 TASK_FAMILIES = ("order", "hidden_targets", "goal_visible")
+DEFAULT_TASK_FAMILY = "order"
 Split = Literal["train", "validation", "test"]
 
 
@@ -28,6 +30,12 @@ def sample_shared_target(rng: np.random.Generator) -> np.ndarray:
     angle = rng.uniform(0.0, 2.0 * np.pi)
     height = rng.uniform(*SHARED_Z_RANGE)
     return np.array([radius * np.cos(angle), radius * np.sin(angle), height])
+
+
+def env_task_family(env_id: str, env_kwargs: dict | None = None) -> str:
+    """The task family a registered env ID uses, with ``env_kwargs`` overriding its registered kwargs."""
+    kwargs = {**gym.spec(env_id).kwargs, **(env_kwargs or {})}
+    return kwargs.get("task_family", DEFAULT_TASK_FAMILY)
 
 
 class TaskSampler:
@@ -49,7 +57,7 @@ class TaskSampler:
     def __init__(
         self,
         split: Split = "train",
-        family: str = "order",
+        family: str = DEFAULT_TASK_FAMILY,
         min_length: int = 1,
         max_length: int = MAX_INSTRUCTION_LENGTH,
         seed: int | None = None,

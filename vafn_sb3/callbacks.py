@@ -14,7 +14,6 @@ import os
 from collections import deque
 from typing import Any, Sequence
 
-import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
 
@@ -155,11 +154,10 @@ class MetaEvalCallback(BaseCallback):
         self.rows: list[dict[str, Any]] = []
 
     def _init_callback(self) -> None:
-        from vafn_gym import TaskSampler
+        from vafn_gym.tasks import TaskSampler, env_task_family
 
         self.env_id = self.env_id or _training_env_id(self)
-        family = gym.spec(self.env_id).kwargs.get("task_family", "order")
-        family = self.env_kwargs.get("task_family", family)
+        family = env_task_family(self.env_id, self.env_kwargs)
         sampler = TaskSampler(self.split, family, self.min_length, self.max_length, seed=self.seed)
         self.tasks = sampler.fixed_set(self.n_tasks, seed=self.seed)
         if self.log_path is None and self.logger is not None and self.logger.dir:

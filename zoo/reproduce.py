@@ -144,11 +144,9 @@ def train_command(job: Job) -> list[str]:
 
 def held_out_tasks(mode: Mode) -> list[Any]:
     """The held-out test instructions every algorithm adapts to."""
-    import gymnasium as gym
+    from vafn_gym.tasks import TaskSampler, env_task_family
 
-    from vafn_gym import TaskSampler
-
-    family = gym.spec(mode.env_id).kwargs.get("task_family", "order")
+    family = env_task_family(mode.env_id)
     sampler = TaskSampler("test", family, 1, mode.max_length, seed=HELD_OUT_SEED)
     return sampler.fixed_set(mode.n_tasks, seed=HELD_OUT_SEED)
 
@@ -343,13 +341,12 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
 
 def fig4(mode: Mode, maml_model: Path, out: Path) -> dict[str, Any]:
     """Fig. 4 for the adapted MAML-SAC and for the scripted ceiling; returns per-phase outcomes."""
-    import gymnasium as gym
-
     from vafn_gym import ScriptedController
+    from vafn_gym.tasks import env_task_family
     from zoo.registry import register_algorithms, require_algorithm
 
     register_algorithms()
-    family = gym.spec(mode.env_id).kwargs.get("task_family", "order")
+    family = env_task_family(mode.env_id)
     model = require_algorithm("maml_sac").load(maml_model, device="cpu")
     outcomes = {}
     for name, policy, k in (("maml_sac", model, model.inner_steps), ("scripted", ScriptedController(), 0)):

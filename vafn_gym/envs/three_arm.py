@@ -36,7 +36,7 @@ from vafn_gym.constants import (
 )
 from vafn_gym.instructions import Instruction
 from vafn_gym.sim import BulletSim
-from vafn_gym.tasks import TASK_FAMILIES, TaskSampler
+from vafn_gym.tasks import DEFAULT_TASK_FAMILY, TASK_FAMILIES, TaskSampler
 
 #: Dense-reward weights (documented in the README, "Reward").
 PROGRESS_WEIGHT = 10.0
@@ -80,7 +80,7 @@ class ThreeArmEnv(gym.Env):
 
     def __init__(
         self,
-        task_family: str = "order",
+        task_family: str = DEFAULT_TASK_FAMILY,
         instruction: Any = None,
         split: str = "train",
         min_length: int = 1,
