@@ -29,6 +29,7 @@ from tqdm import tqdm  # noqa: E402
 
 import vafn_gym  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
+from zoo.run_config import load_run_config  # noqa: E402
 
 VIDEO_SUFFIXES = (".gif", ".mp4")
 
@@ -43,7 +44,7 @@ def load_run(algo: str, env_id: str, folder: str, exp_id: int, load_best: bool) 
     config_path = Path(log_path) / str(env_name) / "config.yml"
     env_kwargs: dict = {}
     if config_path.is_file():
-        config = yaml.load(config_path.read_text(), Loader=yaml.UnsafeLoader) or {}
+        config = load_run_config(config_path)
         env_kwargs = dict(config.get("env_kwargs") or {})
     stats = Path(log_path) / str(env_name) / "vecnormalize.pkl"
     model = algo_class.load(model_path, device="cpu")
