@@ -1,13 +1,15 @@
-"""vafn_gym: three PyBullet arms behind Gymnasium envs, the instruction format, the Dynamic Instruction Queue, tasks.
+"""vafn_gym: N PyBullet arms behind Gymnasium envs, the instruction format, the Dynamic Instruction Queue, tasks.
 
 Importing the package registers the environment IDs listed in :data:`ENV_IDS` with Gymnasium.
 """
 
 from gymnasium.envs.registration import register
 
-from vafn_gym.constants import ARM_IDS
+from vafn_gym.benchmarks import InstructionBenchmark, run_episode
 from vafn_gym.controllers import ScriptedController
+from vafn_gym.envs import MultiArmEnv, MultiArmStreamEnv
 from vafn_gym.instructions import Instruction, Waypoint, difficulty_of
+from vafn_gym.layout import ArmLayout
 from vafn_gym.queue import (
     ArrivalProcess,
     InstructionQueue,
@@ -16,15 +18,19 @@ from vafn_gym.queue import (
     QueueFullError,
     ScheduledArrivals,
 )
-from vafn_gym.tasks import SPLITS, TASK_FAMILIES, TaskSampler
+from vafn_gym.robots import KUKA_IIWA, PANDA, ROBOTS, XARM6, RobotSpec
+from vafn_gym.task import INACTIVE_ARM_MODES, TARGET_MODES, InstructionTask, RewardConfig
+from vafn_gym.tasks import SPLITS, TaskSampler
 
-#: ID -> (entry point, default kwargs). Which task family each ID uses is documented in the README.
+#: ID -> (entry point, default kwargs). The README's "Environments" table documents each one.
 _REGISTRY = {
-    "VAFN/ThreeArmReach-v0": ("vafn_gym.envs:ThreeArmEnv", {"task_family": "order"}),
-    "VAFN/ThreeArmReachHidden-v0": ("vafn_gym.envs:ThreeArmEnv", {"task_family": "hidden_targets"}),
-    "VAFN/ThreeArmReachGoal-v0": ("vafn_gym.envs:ThreeArmEnv", {"task_family": "goal_visible"}),
-    "VAFN/ThreeArmReachSparse-v0": ("vafn_gym.envs:ThreeArmEnv", {"task_family": "order", "reward_type": "sparse"}),
-    "VAFN/ThreeArmStream-v0": ("vafn_gym.envs:ThreeArmStreamEnv", {"task_family": "order"}),
+    "VAFN/ThreeArmReach-v1": ("vafn_gym.envs:MultiArmEnv", {"n_arms": 3, "targets": "default"}),
+    "VAFN/ThreeArmReachHidden-v1": ("vafn_gym.envs:MultiArmEnv", {"n_arms": 3, "targets": "per_arm"}),
+    "VAFN/ThreeArmReachGoal-v1": (
+        "vafn_gym.envs:MultiArmEnv", {"n_arms": 3, "targets": "per_arm", "observe_goal": True}
+    ),
+    "VAFN/ThreeArmStream-v1": ("vafn_gym.envs:MultiArmStreamEnv", {"n_arms": 3, "targets": "default"}),
+    "VAFN/MultiArmReach-v1": ("vafn_gym.envs:MultiArmEnv", {}),
 }
 
 ENV_IDS: list[str] = []
@@ -46,22 +52,34 @@ def __getattr__(name: str):
 
 
 __all__ = [
-    "ARM_IDS",
     "ENV_IDS",
+    "INACTIVE_ARM_MODES",
+    "KUKA_IIWA",
+    "PANDA",
+    "ROBOTS",
     "SPLITS",
-    "TASK_FAMILIES",
+    "TARGET_MODES",
+    "XARM6",
+    "ArmLayout",
     "ArrivalProcess",
     "Instruction",
+    "InstructionBenchmark",
     "InstructionGenerator",
     "InstructionQueue",
+    "InstructionTask",
+    "MultiArmEnv",
+    "MultiArmStreamEnv",
     "MultimediaStream",
     "PoissonArrivals",
     "QueueFullError",
     "QueuedInstruction",
+    "RewardConfig",
+    "RobotSpec",
     "ScheduledArrivals",
     "ScriptedController",
     "TaskSampler",
     "Transcription",
     "Waypoint",
     "difficulty_of",
+    "run_episode",
 ]

@@ -1,73 +1,99 @@
-"""One KUKA iiwa arm: its URDF, base pose, end-effector link, and the velocity command → IK → joint-target law."""
+"""One arm: a robot spec at a base pose, and the end-effector velocity command → exact hold → IK → joint targets law."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from vafn_gym.constants import WORKSPACE_HIGH, WORKSPACE_LOW, arm_base_position, arm_base_yaw, home_position
+from vafn_gym.constants import V_MAX, WORKSPACE_HIGH, WORKSPACE_LOW
+from vafn_gym.robots import RobotSpec
 from vafn_gym.sim import BulletSim
 
-#: The robot model: a 7-DOF KUKA LBR iiwa shipped inside the pybullet wheel (BSD-style licence, header in the URDF).
-URDF_PATH = "kuka_iiwa/model.urdf"
-JOINTS = list(range(7))
-EE_LINK = 6
-JOINT_FORCES = np.full(len(JOINTS), 300.0)
-#: A relaxed elbow-up posture used as the IK null-space rest pose and to seed the home-pose solve.
-REST_POSE = np.array([0.0, 0.6, 0.0, -1.6, 0.0, 0.9, 0.0])
 #: IK iterations for a per-step command (small moves) and for the one-off home-pose solve.
 STEP_IK_ITERATIONS = 20
 HOME_IK_ITERATIONS = 200
+#: When the measured end effector is this far from the commanded point (e.g. after a collision or an unreachable
+#: command), the command restarts from the measured point so that it cannot run away from the arm.
+TRACKING_BOUND = 0.05
 
 
 class Arm:
-    """Arm ``arm_id`` (1-based) standing on the base circle, facing the table centre.
+    """One robot arm standing at ``base_position``, facing the table centre.
+
+    The command is integrated from the last *commanded* point, not from the measured end effector, so a zero velocity
+    commands exactly the same joint targets again and the arm does not sag.
 
     :param sim: the physics client that owns the arm.
-    :param arm_id: 1-based arm id, as users name arms.
+    :param spec: the robot model.
+    :param base_position: world position of the base.
+    :param base_yaw: yaw of the base position on the layout circle (the arm is turned to face the centre).
+    :param home_point: nominal rest point of the end effector.
     """
 
-    def __init__(self, sim: BulletSim, arm_id: int) -> None:
+    def __init__(
+        self, sim: BulletSim, spec: RobotSpec, base_position: np.ndarray, base_yaw: float, home_point: np.ndarray
+    ) -> None:
         self.sim = sim
-        self.arm_id = arm_id
-        self.base_position = arm_base_position(arm_id)
-        # The URDF's x axis points forward; turn it to face the centre.
-        self.body = sim.load_urdf(URDF_PATH, self.base_position, yaw=arm_base_yaw(arm_id) + np.pi)
-        self.limits = sim.joint_limits(self.body, JOINTS)
-        self.home_joints = self._solve_home()
+        self.spec = spec
+        self.joints = list(spec.joints)
+        self.rest_pose = np.asarray(spec.rest_pose, dtype=np.float64)
+        self.base_position = np.asarray(base_position, dtype=np.float64)
+        self.body = sim.load_urdf(spec.urdf, self.base_position, yaw=base_yaw + spec.base_yaw_offset)
+        # pybullet's IK works on every movable joint (fingers included): limits and rest pose cover them all, and the
+        # controlled joints are picked out of its answer.
+        movable = sim.movable_joints(self.body)
+        self._ik_indices = [movable.index(j) for j in self.joints]
+        self._ik_limits = sim.joint_limits(self.body, movable)
+        self._ik_rest = np.mean(self._ik_limits, axis=0)
+        self._ik_rest[self._ik_indices] = self.rest_pose
+        self.home_joints = self._solve(np.asarray(home_point, dtype=np.float64))
+        self._joint_targets = self.home_joints
         self.reset()
-        #: Where the end effector actually rests (IK leaves ~1 cm of the nominal home point unreached).
+        #: Where the end effector actually rests (IK leaves up to ~1 cm of the nominal home point unreached).
         self.home = self.ee_position
 
-    def _solve_home(self) -> np.ndarray:
-        angles = REST_POSE.copy()
+    def _solve(self, point: np.ndarray) -> np.ndarray:
+        angles = self.rest_pose.copy()
         for _ in range(3):
-            self.sim.reset_joints(self.body, JOINTS, angles)
-            angles = self.sim.inverse_kinematics(
-                self.body, EE_LINK, home_position(self.arm_id), REST_POSE, self.limits, iterations=HOME_IK_ITERATIONS
-            )[: len(JOINTS)]
+            self.sim.reset_joints(self.body, self.joints, angles)
+            angles = self._ik(point, HOME_IK_ITERATIONS)
         return angles
+
+    def _ik(self, point: np.ndarray, iterations: int) -> np.ndarray:
+        solution = self.sim.inverse_kinematics(
+            self.body, self.spec.ee_link, point, self._ik_rest, self._ik_limits, iterations=iterations
+        )
+        return solution[self._ik_indices]
 
     def reset(self) -> None:
         """Teleport to the home pose with zero velocity and hold it (bit-exact, unlike saveState/restoreState)."""
-        self.sim.reset_joints(self.body, JOINTS, self.home_joints)
-        self.sim.control_joints(self.body, JOINTS, self.home_joints, JOINT_FORCES)
+        self.sim.reset_joints(self.body, self.joints, self.home_joints)
+        self._joint_targets = self.home_joints
+        self.sim.control_joints(self.body, self.joints, self.home_joints, self.spec.joint_forces)
+        self.commanded = self.ee_position
 
     @property
     def ee_position(self) -> np.ndarray:
         """Current end-effector position (world metres)."""
-        return self.sim.link_position(self.body, EE_LINK)
+        return self.sim.link_position(self.body, self.spec.ee_link)
 
     def command_velocity(self, velocity: np.ndarray, dt: float, position: np.ndarray) -> np.ndarray:
-        """Integrate an EE velocity over ``dt`` from ``position``, clip to the workspace, solve IK, set joint targets.
+        """Move the commanded point by ``velocity * dt`` (clipped to the workspace) and track it with IK.
 
         :param velocity: end-effector velocity (m/s).
         :param dt: control step (s).
-        :param position: the current end-effector position (the caller has just read it).
+        :param position: the measured end-effector position (the caller has just read it).
         :return: the commanded end-effector point.
         """
-        target = np.clip(position + velocity * dt, WORKSPACE_LOW, WORKSPACE_HIGH)
-        joints = self.sim.inverse_kinematics(
-            self.body, EE_LINK, target, REST_POSE, self.limits, iterations=STEP_IK_ITERATIONS
-        )[: len(JOINTS)]
-        self.sim.control_joints(self.body, JOINTS, joints, JOINT_FORCES)
+        if np.linalg.norm(self.commanded - position) > TRACKING_BOUND:
+            self.commanded = np.asarray(position, dtype=np.float64)
+        target = np.clip(self.commanded + velocity * dt, WORKSPACE_LOW, WORKSPACE_HIGH)
+        if not np.array_equal(target, self.commanded):
+            self._joint_targets = self._ik(target, STEP_IK_ITERATIONS)
+        self.commanded = target
+        self.sim.control_joints(self.body, self.joints, self._joint_targets, self.spec.joint_forces)
         return target
+
+    def command_toward(self, goal: np.ndarray, dt: float, position: np.ndarray) -> np.ndarray:
+        """Move the commanded point toward ``goal`` at up to full speed per axis (the env's low-level return/hold)."""
+        velocity = np.clip((goal - self.commanded) / (V_MAX * dt), -1.0, 1.0) * V_MAX
+        return self.command_velocity(velocity, dt, position)

@@ -1,28 +1,30 @@
-"""ScriptedController: solves any instruction from the 15-D observation alone (the ceiling for every learning curve).
+"""ScriptedController: solves any instruction from the observation alone (the ceiling for every learning curve).
 
-It never reads simulator state or the instruction. The target of the active arm is not in the observation, only its
-distance, so the controller *trilaterates* it: it moves the arm along three probe directions, then solves the linear
+It never reads simulator state or the instruction. Where the active target is not in the observation, only its
+distance, the controller *trilaterates* it: it moves the arm along three probe directions, then solves the linear
 least-squares system given by ``|p_k - t|^2 = d_k^2`` and keeps refining the estimate as new (p, d) pairs arrive.
 Only one arm enters the shared region at a time: the active arm waits until every other arm is back near its home.
+It works for any number of arms and any robot: it only needs each arm's home point.
 """
 
 from __future__ import annotations
 
+from typing import Any, Mapping
+
+import gymnasium as gym
 import numpy as np
 
 from vafn_gym.constants import (
-    ARM_IDS,
+    ACTION_PER_ARM,
     CONTROL_DT,
     DIST_INDEX,
-    NUM_ARMS,
+    GOAL_SLICE,
     OBS_PER_ARM,
+    OBS_PER_ARM_WITH_GOAL,
     PHASE_EXECUTING,
     PHASE_INDEX,
     POS_SLICE,
     V_MAX,
-    action_slice,
-    home_position,
-    obs_slice,
 )
 
 #: Probe moves (unit directions) made by a newly active arm before the first trilateration.
@@ -36,12 +38,24 @@ GAIN = 1.0
 class ScriptedController:
     """A deterministic policy with ``predict(obs) -> (action, None)`` like an SB3 model.
 
-    :param homes: rest end-effector point per arm (defaults to the nominal home points of the constants module).
+    :param homes: rest end-effector point per arm id (1..N); :meth:`for_env` reads them from an env.
+    :param observe_goal: observations carry each arm's current target (8 numbers per arm instead of 5).
     """
 
-    def __init__(self, homes: dict[int, np.ndarray] | None = None) -> None:
-        self.homes = homes or {arm: home_position(arm) for arm in ARM_IDS}
+    def __init__(self, homes: Mapping[int, np.ndarray], observe_goal: bool = False) -> None:
+        self.homes = {int(arm): np.asarray(point, dtype=np.float64) for arm, point in homes.items()}
+        self.arm_ids = tuple(sorted(self.homes))
+        if self.arm_ids != tuple(range(1, len(self.arm_ids) + 1)):
+            raise ValueError(f"homes must be keyed by arm ids 1..N, got {list(self.homes)}")
+        self.observe_goal = observe_goal
+        self.obs_per_arm = OBS_PER_ARM_WITH_GOAL if observe_goal else OBS_PER_ARM
         self.reset()
+
+    @classmethod
+    def for_env(cls, env: gym.Env) -> "ScriptedController":
+        """A controller for ``env`` (any wrapper around a :class:`MultiArmEnv`)."""
+        base = env.unwrapped
+        return cls({arm_id: arm.home for arm_id, arm in base.arms.items()}, observe_goal=base.observe_goal)
 
     def reset(self) -> None:
         """Forget the target estimate (call at every episode start)."""
@@ -65,49 +79,55 @@ class ScriptedController:
         return np.linalg.lstsq(a, b, rcond=None)[0]
 
     def act(self, observation: np.ndarray) -> np.ndarray:
-        """The 9-D action for one observation."""
-        obs = np.asarray(observation, dtype=np.float64)[: NUM_ARMS * OBS_PER_ARM]
-        positions = {arm: obs[obs_slice(arm)][POS_SLICE] for arm in ARM_IDS}
-        distances = {arm: obs[obs_slice(arm)][DIST_INDEX] for arm in ARM_IDS}
-        active = next((arm for arm in ARM_IDS if round(obs[obs_slice(arm)][PHASE_INDEX]) == PHASE_EXECUTING), None)
+        """The joint action for one observation."""
+        obs = np.asarray(observation, dtype=np.float64)
+        blocks = {arm: obs[(arm - 1) * self.obs_per_arm: arm * self.obs_per_arm] for arm in self.arm_ids}
+        positions = {arm: block[POS_SLICE] for arm, block in blocks.items()}
+        distances = {arm: block[DIST_INDEX] for arm, block in blocks.items()}
+        active = next((arm for arm, block in blocks.items() if round(block[PHASE_INDEX]) == PHASE_EXECUTING), None)
         # A new waypoint starts when the active arm changes or its distance jumps (the same arm reaches again).
         jumped = self._previous_distance is not None and active is not None and (
             distances[active] > self._previous_distance + V_MAX * CONTROL_DT * 2
         )
         if active != self._active or jumped:
             self._active, self._samples = active, []
-        action = np.zeros(3 * NUM_ARMS)
-        for arm in ARM_IDS:
+        action = np.zeros(ACTION_PER_ARM * len(self.arm_ids))
+        for arm in self.arm_ids:
             if arm != active:
-                action[action_slice(arm)] = self._velocity_toward(positions[arm], self.homes[arm])
+                action[self._action_slice(arm)] = self._velocity_toward(positions[arm], self.homes[arm])
         if active is not None:
-            self._samples.append((positions[active].copy(), float(distances[active])))
-            self._previous_distance = float(distances[active])
-            others_clear = all(
-                np.linalg.norm(positions[arm] - self.homes[arm]) < CLEAR_DISTANCE for arm in ARM_IDS if arm != active
-            )
-            probe = len(self._samples) - 1
-            target = self._estimate_target()
-            if probe < len(PROBE_DIRECTIONS):
-                command = PROBE_DIRECTIONS[probe]
-            elif target is None or not others_clear:
-                command = self._velocity_toward(positions[active], self.homes[active])
-            else:
-                command = self._velocity_toward(positions[active], target)
-            action[action_slice(active)] = command
+            action[self._action_slice(active)] = self._active_command(active, blocks[active], positions, distances)
         return action.astype(np.float32)
 
-    def run_episode(self, env, seed: int | None = None) -> dict:
-        """Run one whole episode of ``env`` (reset with ``seed``) and return the last step's ``info``."""
-        obs, info = env.reset(seed=seed)
-        self.reset()
-        done = False
-        while not done:
-            obs, _, terminated, truncated, info = env.step(self.act(obs))
-            done = terminated or truncated
-        return info
+    def _active_command(
+        self, active: int, block: np.ndarray, positions: dict[int, np.ndarray], distances: dict[int, float]
+    ) -> np.ndarray:
+        self._previous_distance = float(distances[active])
+        others_clear = all(
+            np.linalg.norm(positions[arm] - self.homes[arm]) < CLEAR_DISTANCE for arm in self.arm_ids if arm != active
+        )
+        if not others_clear:  # wait at home; probing now would gather no information while the env holds the arm
+            self._samples = []
+            return self._velocity_toward(positions[active], self.homes[active])
+        self._samples.append((positions[active].copy(), float(distances[active])))
+        if self.observe_goal:
+            target = block[GOAL_SLICE]
+        else:
+            probe = len(self._samples) - 1
+            if probe < len(PROBE_DIRECTIONS):
+                return PROBE_DIRECTIONS[probe]
+            target = self._estimate_target()
+        if target is None:
+            return self._velocity_toward(positions[active], self.homes[active])
+        return self._velocity_toward(positions[active], target)
 
-    def predict(self, observation: np.ndarray, state=None, episode_start=None, deterministic: bool = True):
+    @staticmethod
+    def _action_slice(arm: int) -> slice:
+        return slice((arm - 1) * ACTION_PER_ARM, arm * ACTION_PER_ARM)
+
+    def predict(
+        self, observation: np.ndarray, state: Any = None, episode_start: Any = None, deterministic: bool = True
+    ) -> tuple[np.ndarray, None]:
         """SB3-style ``predict``: returns ``(action, None)``; batched observations give batched actions."""
         obs = np.asarray(observation)
         if obs.ndim == 2:

@@ -1,4 +1,4 @@
-"""A PettingZoo ``ParallelEnv`` view of :class:`ThreeArmEnv`: one agent per arm, a shared team reward.
+"""A PettingZoo ``ParallelEnv`` view of :class:`MultiArmEnv`: one agent per arm, a shared team reward.
 
 Optional: needs the ``[pettingzoo]`` extra, and is imported only when used (``from vafn_gym.pettingzoo import ...``).
 """
@@ -12,26 +12,24 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from vafn_gym.constants import ACTION_PER_ARM, ARM_IDS, action_slice
-from vafn_gym.envs.three_arm import ThreeArmEnv
-
-AGENT_NAMES = tuple(f"arm_{arm}" for arm in ARM_IDS)
+from vafn_gym.constants import ACTION_PER_ARM
+from vafn_gym.envs.multi_arm import MultiArmEnv
 
 
-class ThreeArmParallelEnv(ParallelEnv):
-    """Each arm is an agent with a 3-D velocity action; every agent observes the 15-D global observation.
+class MultiArmParallelEnv(ParallelEnv):
+    """Each arm is an agent (``arm_1`` .. ``arm_N``) with a 3-D velocity action; every agent sees the global observation.
 
     All agents stay alive until the instruction ends (arms recur in an order, and PettingZoo forbids revival).
-    ``state()`` is the 15-D global observation.
+    ``state()`` is the global observation.
 
-    :param kwargs: everything :class:`ThreeArmEnv` accepts.
+    :param kwargs: everything :class:`MultiArmEnv` accepts (use ``inactive_arms="policy"`` for a true multi-agent task).
     """
 
-    metadata = {"name": "vafn_three_arm_v0", "render_modes": ThreeArmEnv.metadata["render_modes"], "is_parallelizable": True}
+    metadata = {"name": "vafn_multi_arm_v1", "render_modes": MultiArmEnv.metadata["render_modes"], "is_parallelizable": True}
 
     def __init__(self, **kwargs: Any) -> None:
-        self.env = ThreeArmEnv(**kwargs)
-        self.possible_agents = list(AGENT_NAMES)
+        self.env = MultiArmEnv(**kwargs)
+        self.possible_agents = [f"arm_{arm}" for arm in self.env.layout.arm_ids]
         self.agents: list[str] = []
         self.render_mode = self.env.render_mode
         self._state = np.zeros(self.env.observation_space.shape, dtype=np.float32)
@@ -47,7 +45,7 @@ class ThreeArmParallelEnv(ParallelEnv):
         return spaces.Box(-1.0, 1.0, shape=(ACTION_PER_ARM,), dtype=np.float32)
 
     def state(self) -> np.ndarray:
-        """The global 15-D observation."""
+        """The global observation."""
         return self._state.copy()
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
@@ -58,14 +56,14 @@ class ThreeArmParallelEnv(ParallelEnv):
         return {a: obs.copy() for a in self.agents}, {a: dict(info) for a in self.agents}
 
     def step(self, actions: dict[str, np.ndarray]) -> tuple[dict, dict, dict, dict, dict]:
-        """Assemble the joint 9-D action (a missing agent's action is zero), step, and share the team reward."""
+        """Assemble the joint action (a missing agent's action is zero), step, and share the team reward."""
         unknown = set(actions) - set(self.agents)
         if unknown:
             raise ValueError(f"actions for agents that are not alive: {sorted(unknown)}")
         joint = np.zeros(self.env.action_space.shape, dtype=np.float32)
-        for arm, agent in zip(ARM_IDS, self.possible_agents):
+        for arm, agent in zip(self.env.layout.arm_ids, self.possible_agents):
             if agent in actions:
-                joint[action_slice(arm)] = np.asarray(actions[agent], dtype=np.float32).reshape(ACTION_PER_ARM)
+                joint[self.env.layout.action_slice(arm)] = np.asarray(actions[agent], dtype=np.float32).reshape(ACTION_PER_ARM)
         obs, reward, terminated, truncated, info = self.env.step(joint)
         self._state = obs
         agents = self.agents
@@ -88,6 +86,6 @@ class ThreeArmParallelEnv(ParallelEnv):
         self.env.close()
 
 
-def parallel_env(**kwargs: Any) -> ThreeArmParallelEnv:
+def parallel_env(**kwargs: Any) -> MultiArmParallelEnv:
     """PettingZoo-style constructor."""
-    return ThreeArmParallelEnv(**kwargs)
+    return MultiArmParallelEnv(**kwargs)

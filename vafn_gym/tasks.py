@@ -5,37 +5,17 @@ from __future__ import annotations
 import hashlib
 from typing import Literal
 
-import gymnasium as gym
 import numpy as np
 
-from vafn_gym.constants import (
-    MAX_INSTRUCTION_LENGTH,
-    NUM_ARMS,
-    SHARED_RADIUS,
-    SHARED_Z_RANGE,
-    default_target,
-)
+from vafn_gym.constants import MAX_INSTRUCTION_LENGTH
 from vafn_gym.instructions import Instruction
+from vafn_gym.layout import ArmLayout
+from vafn_gym.task import TARGET_MODES
 
 SPLITS = ("train", "validation", "test")
-#: Task families: which parts of an instruction vary between tasks (see the README, "Task families").
-TASK_FAMILIES = ("order", "hidden_targets", "goal_visible")
-DEFAULT_TASK_FAMILY = "order"
 Split = Literal["train", "validation", "test"]
-
-
-def sample_shared_target(rng: np.random.Generator) -> np.ndarray:
-    """A target drawn uniformly from the shared region (a vertical cylinder around the table centre)."""
-    radius = SHARED_RADIUS * np.sqrt(rng.uniform())
-    angle = rng.uniform(0.0, 2.0 * np.pi)
-    height = rng.uniform(*SHARED_Z_RANGE)
-    return np.array([radius * np.cos(angle), radius * np.sin(angle), height])
-
-
-def env_task_family(env_id: str, env_kwargs: dict | None = None) -> str:
-    """The task family a registered env ID uses, with ``env_kwargs`` overriding its registered kwargs."""
-    kwargs = {**gym.spec(env_id).kwargs, **(env_kwargs or {})}
-    return kwargs.get("task_family", DEFAULT_TASK_FAMILY)
+#: Lengths with at most this many orders are enumerated (exact uniform draws); longer ones are drawn by rejection.
+ENUMERATION_LIMIT = 20_000
 
 
 class TaskSampler:
@@ -45,67 +25,86 @@ class TaskSampler:
     orders are disjoint by construction, and a train sampler can never produce a test order.
 
     :param split: which split to sample from.
-    :param family: "order" (default per-arm targets), "hidden_targets" or "goal_visible" (targets sampled per task).
+    :param targets: "default" (waypoints name arms only; the env uses each arm's default target), "per_arm" (one
+        target per arm drawn from the shared region, reused on every visit) or "per_waypoint" (one per waypoint).
     :param min_length: shortest instruction (waypoints).
     :param max_length: longest instruction (at most ``MAX_INSTRUCTION_LENGTH``).
     :param seed: seed of the sampling stream.
     :param split_seed: seed of the split assignment (keep it fixed across a study).
     :param fractions: train / validation / test shares of the order space.
     :param no_adjacent_repeats: forbid the same arm twice in a row (the paper's orders never repeat adjacently).
+    :param layout: the arm layout (arm count and shared region); three arms by default.
     """
 
     def __init__(
         self,
         split: Split = "train",
-        family: str = DEFAULT_TASK_FAMILY,
+        targets: str = "default",
         min_length: int = 1,
         max_length: int = MAX_INSTRUCTION_LENGTH,
         seed: int | None = None,
         split_seed: int = 0,
         fractions: tuple[float, float, float] = (0.7, 0.1, 0.2),
         no_adjacent_repeats: bool = True,
+        layout: ArmLayout | None = None,
     ) -> None:
         if split not in SPLITS:
             raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
-        if family not in TASK_FAMILIES:
-            raise ValueError(f"family must be one of {TASK_FAMILIES}, got {family!r}")
+        if targets not in TARGET_MODES:
+            raise ValueError(f"targets must be one of {TARGET_MODES}, got {targets!r}")
         if not 0 <= min_length <= max_length <= MAX_INSTRUCTION_LENGTH:
             raise ValueError(f"need 0 <= min_length <= max_length <= {MAX_INSTRUCTION_LENGTH}, got {min_length}, {max_length}")
         if len(fractions) != 3 or min(fractions) < 0 or not np.isclose(sum(fractions), 1.0):
             raise ValueError(f"fractions must be three non-negative shares summing to 1, got {fractions}")
         self.split = split
-        self.family = family
+        self.targets = targets
         self.min_length = min_length
         self.max_length = max_length
         self.split_seed = split_seed
         self.fractions = tuple(float(f) for f in fractions)
         self.no_adjacent_repeats = no_adjacent_repeats
+        self.layout = layout or ArmLayout()
+        self.n_arms = self.layout.n_arms
         self.rng = np.random.default_rng(seed)
-        self._orders = [o for o in self._enumerate_orders() if self.split_of(o) == split]
-        self._orders_by_length: dict[int, list[tuple[int, ...]]] = {}
-        for order in self._orders:  # enumeration order is kept inside each length
-            self._orders_by_length.setdefault(len(order), []).append(order)
+        # Exact per-length lists where the order space is small; None marks a length drawn by rejection.
+        self._orders_by_length: dict[int, list[tuple[int, ...]] | None] = {}
+        for length in range(min_length, max_length + 1):
+            if self._count(length) <= ENUMERATION_LIMIT:
+                orders = [o for o in self._enumerate(length) if self.split_of(o) == split]
+                if orders:
+                    self._orders_by_length[length] = orders
+            else:
+                self._orders_by_length[length] = None
         self._lengths = sorted(self._orders_by_length)
-        if not self._orders:
+        if not self._lengths:
             raise ValueError(f"no {split!r} orders of length {min_length}..{max_length}; widen the range or fractions")
 
     def seed(self, seed: int | None) -> None:
         """Re-seed the sampling stream."""
         self.rng = np.random.default_rng(seed)
 
-    def _enumerate_orders(self) -> list[tuple[int, ...]]:
-        orders: list[tuple[int, ...]] = [()] if self.min_length == 0 else []
+    def _count(self, length: int) -> int:
+        if length == 0:
+            return 1
+        return self.n_arms * (self.n_arms - 1) ** (length - 1) if self.no_adjacent_repeats else self.n_arms**length
+
+    def _enumerate(self, length: int) -> list[tuple[int, ...]]:
         frontier: list[tuple[int, ...]] = [()]
-        for length in range(1, self.max_length + 1):
+        for _ in range(length):
             frontier = [
                 prefix + (arm,)
                 for prefix in frontier
-                for arm in range(1, NUM_ARMS + 1)
+                for arm in range(1, self.n_arms + 1)
                 if not (self.no_adjacent_repeats and prefix and prefix[-1] == arm)
             ]
-            if length >= self.min_length:
-                orders.extend(frontier)
-        return orders
+        return frontier
+
+    def _random_order(self, length: int, rng: np.random.Generator) -> tuple[int, ...]:
+        order: list[int] = []
+        for _ in range(length):
+            choices = [a for a in range(1, self.n_arms + 1) if not (self.no_adjacent_repeats and order and order[-1] == a)]
+            order.append(choices[rng.integers(len(choices))])
+        return tuple(order)
 
     def split_of(self, order: tuple[int, ...] | Instruction) -> str:
         """The split an arm order belongs to (a hash of the order, so independent of the sampler's length range)."""
@@ -117,8 +116,10 @@ class TaskSampler:
 
     @property
     def orders(self) -> list[tuple[int, ...]]:
-        """Every arm order in this sampler's split and length range."""
-        return list(self._orders)
+        """Every arm order in this sampler's split and length range (``ValueError`` where there are too many)."""
+        if any(orders is None for orders in self._orders_by_length.values()):
+            raise ValueError(f"more than {ENUMERATION_LIMIT} orders per length: too many to list")
+        return [order for length in self._lengths for order in self._orders_by_length[length]]
 
     def sample(self, rng: np.random.Generator | None = None) -> Instruction:
         """One instruction: a uniform length, then a uniform order of that length from this split, then targets.
@@ -128,14 +129,20 @@ class TaskSampler:
         rng = self.rng if rng is None else rng
         length = self._lengths[rng.integers(len(self._lengths))]
         candidates = self._orders_by_length[length]
-        order = candidates[rng.integers(len(candidates))]
-        if self.family == "order":
-            targets = [default_target(arm) for arm in order]
+        if candidates is not None:
+            order = candidates[rng.integers(len(candidates))]
         else:
-            targets = [sample_shared_target(rng) for _ in order]
-        instruction = Instruction.from_arms(order, targets)
-        assert self.split_of(instruction) == self.split, "sampler produced an order outside its split"
-        return instruction
+            order = self._random_order(length, rng)
+            while self.split_of(order) != self.split:
+                order = self._random_order(length, rng)
+        if self.targets == "default":
+            return Instruction.from_arms(order, n_arms=self.n_arms)
+        targets, per_arm = [], {}
+        for arm in order:
+            if self.targets == "per_waypoint" or arm not in per_arm:
+                per_arm[arm] = self.layout.sample_shared_target(rng)
+            targets.append(per_arm[arm])
+        return Instruction.from_arms(order, targets, n_arms=self.n_arms)
 
     def sample_tasks(self, n: int) -> list[Instruction]:
         """``n`` independent instructions (a meta-batch)."""
@@ -143,8 +150,5 @@ class TaskSampler:
 
     def fixed_set(self, n: int, seed: int = 0) -> list[Instruction]:
         """A deterministic set of ``n`` instructions (e.g. the held-out evaluation set), independent of the stream."""
-        saved, self.rng = self.rng, np.random.default_rng(seed)
-        try:
-            return self.sample_tasks(n)
-        finally:
-            self.rng = saved
+        rng = np.random.default_rng(seed)
+        return [self.sample(rng) for _ in range(n)]

@@ -1,6 +1,6 @@
-"""The environments: ThreeArmEnv (one instruction per episode) and ThreeArmStreamEnv (queue-driven, long horizon)."""
+"""The environments: MultiArmEnv (one instruction per episode) and MultiArmStreamEnv (queue-driven, long horizon)."""
 
-from vafn_gym.envs.stream import ThreeArmStreamEnv
-from vafn_gym.envs.three_arm import ThreeArmEnv
+from vafn_gym.envs.multi_arm import MultiArmEnv
+from vafn_gym.envs.stream import MultiArmStreamEnv
 
-__all__ = ["ThreeArmEnv", "ThreeArmStreamEnv"]
+__all__ = ["MultiArmEnv", "MultiArmStreamEnv"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import weakref
 from contextlib import contextmanager
 from typing import Iterator
 
@@ -32,6 +33,8 @@ class BulletSim:
         self.client = p.connect(p.GUI if gui else p.DIRECT)
         if self.client < 0:
             raise RuntimeError("could not connect to a PyBullet physics server")
+        # An env dropped without close() must not keep its physics server (tens of MB each).
+        self._finalizer = weakref.finalize(self, _disconnect, self.client)
         self.physics_dt = physics_dt
         self.n_substeps = n_substeps
         p.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=self.client)
@@ -94,6 +97,12 @@ class BulletSim:
         for joint, angle in zip(joints, angles):
             p.resetJointState(body, joint, float(angle), targetVelocity=0.0, physicsClientId=self.client)
 
+    def movable_joints(self, body: int) -> list[int]:
+        """Indices of the non-fixed joints, in the order pybullet's IK reports them."""
+        n_joints = p.getNumJoints(body, physicsClientId=self.client)
+        infos = (p.getJointInfo(body, j, physicsClientId=self.client) for j in range(n_joints))
+        return [info[0] for info in infos if info[2] != p.JOINT_FIXED]
+
     def joint_angles(self, body: int, joints: list[int]) -> np.ndarray:
         """Current joint angles."""
         return np.array([state[0] for state in p.getJointStates(body, joints, physicsClientId=self.client)])
@@ -143,9 +152,12 @@ class BulletSim:
 
     def close(self) -> None:
         """Disconnect; safe to call twice."""
-        if self.client >= 0:
-            try:
-                p.disconnect(physicsClientId=self.client)
-            except p.error:
-                pass
-            self.client = -1
+        self._finalizer()
+        self.client = -1
+
+
+def _disconnect(client: int) -> None:
+    try:
+        p.disconnect(physicsClientId=client)
+    except p.error:
+        pass

@@ -1,0 +1,115 @@
+"""The one held-out evaluation protocol: a benchmark's train/test instructions, its env, and one episode runner.
+
+Every curve in the project (training callbacks, the adaptation and learning benchmarks, the zoo's enjoy/reproduce, the
+scripted ceiling) takes its held-out tasks from :class:`InstructionBenchmark` and scores them with :func:`run_episode`,
+so two numbers from two scripts are comparable.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+
+from vafn_gym.constants import MAX_INSTRUCTION_LENGTH
+from vafn_gym.instructions import Instruction
+from vafn_gym.tasks import TaskSampler
+
+#: Seed of the held-out test set unless a study says otherwise.
+DEFAULT_TEST_SEED = 1234
+#: Seed offset of the evaluation episodes' resets (task i, episode j resets with EVAL_SEED + i * 100 + j).
+EVAL_SEED = 10_000
+
+
+class InstructionBenchmark:
+    """Train and held-out test instructions of one registered env (Meta-World's ``Benchmark``, for instructions).
+
+    :param env_id: registered env ID, e.g. ``"VAFN/ThreeArmReach-v1"``.
+    :param min_length: shortest test instruction.
+    :param max_length: longest test instruction.
+    :param n_test: number of held-out test instructions.
+    :param seed: seed of the test set (the same seed gives the same tasks, in every script).
+    :param env_kwargs: keyword arguments of ``gym.make`` (e.g. ``n_arms``, ``robot``).
+    :param n_train: number of training instructions in :attr:`train_tasks`.
+    :param train_max_length: longest training instruction (defaults to ``max_length``).
+    """
+
+    def __init__(
+        self,
+        env_id: str,
+        min_length: int = 1,
+        max_length: int = MAX_INSTRUCTION_LENGTH,
+        n_test: int = 100,
+        seed: int = DEFAULT_TEST_SEED,
+        env_kwargs: dict[str, Any] | None = None,
+        n_train: int = 40,
+        train_max_length: int | None = None,
+    ) -> None:
+        self.env_id = env_id
+        self.env_kwargs = dict(env_kwargs or {})
+        self.min_length, self.max_length = min_length, max_length
+        self.seed = seed
+        env = self.make_env()
+        try:
+            base = env.unwrapped
+            targets, layout, split_seed = base.targets, base.layout, base.sampler.split_seed
+        finally:
+            env.close()
+        test = TaskSampler("test", targets, min_length, max_length, split_seed=split_seed, layout=layout)
+        train = TaskSampler(
+            "train", targets, min_length, train_max_length or max_length, split_seed=split_seed, layout=layout
+        )
+        #: Held-out instructions: orders of the test split only, with their (hidden) targets drawn once.
+        self.test_tasks: list[Instruction] = test.fixed_set(n_test, seed=seed)
+        #: Training instructions (e.g. MAML's task pool): orders of the train split only.
+        self.train_tasks: list[Instruction] = train.fixed_set(n_train, seed=seed + 1)
+
+    def make_env(self, **overrides: Any) -> gym.Env:
+        """A fresh env of this benchmark (its ``env_kwargs``, updated by ``overrides``)."""
+        return gym.make(self.env_id, **{**self.env_kwargs, **overrides})
+
+    def episode_seed(self, task_index: int, episode: int = 0) -> int:
+        """Reset seed of evaluation episode ``episode`` of test task ``task_index``."""
+        return EVAL_SEED + self.seed + task_index * 100 + episode
+
+    def evaluate(self, policy: Any, n_tasks: int | None = None, deterministic: bool = True) -> list[dict[str, Any]]:
+        """Run ``policy`` once on each of the first ``n_tasks`` test tasks; one row per task (see :func:`run_episode`)."""
+        env = self.make_env()
+        rows = []
+        try:
+            for index, task in enumerate(self.test_tasks[:n_tasks]):
+                env.unwrapped.set_task(task)
+                row = run_episode(policy, env, self.episode_seed(index), deterministic=deterministic)
+                rows.append({"task_index": index, "task": task.to_code(), "length": len(task), **row})
+        finally:
+            env.close()
+        return rows
+
+
+def run_episode(policy: Any, env: gym.Env, seed: int | None, deterministic: bool = True) -> dict[str, Any]:
+    """One episode of ``policy`` (anything with SB3's ``predict``) on ``env``'s current task.
+
+    A policy with a ``reset()`` method (e.g. :class:`ScriptedController`) is reset first.
+
+    :return: ``return``, ``success`` (1.0/0.0), ``collision`` (any arm-arm contact), ``steps``, ``waypoints_reached``.
+    """
+    reset = getattr(policy, "reset", None)
+    if callable(reset):
+        reset()
+    obs, _ = env.reset(seed=seed)
+    total, steps, collided = 0.0, 0, False
+    while True:
+        action, _ = policy.predict(obs, deterministic=deterministic)
+        obs, reward, terminated, truncated, info = env.step(action)
+        total += float(reward)
+        steps += 1
+        collided |= bool(info.get("collision", False))
+        if terminated or truncated:
+            return {
+                "return": total,
+                "success": float(bool(info.get("is_success", False))),
+                "collision": float(collided),
+                "steps": steps,
+                "waypoints_reached": int(info.get("waypoint_index", 0)),
+            }
+

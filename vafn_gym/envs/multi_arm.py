@@ -1,0 +1,350 @@
+"""MultiArmEnv: a simulator, N arms of one robot model and an instruction task composed into one Gymnasium env.
+
+The observation is N blocks of ``[ee position (3), distance to current target, phase flag]`` (plus the arm's current
+target when ``observe_goal=True``); the action is N blocks of an end-effector velocity in ``[-1, 1]^3 × V_MAX``. With
+three arms that is the paper's 15-D observation and 9-D action.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from vafn_gym.arm import Arm
+from vafn_gym.checks import check_bool, check_choice, check_int, check_number
+from vafn_gym.constants import (
+    DIST_INDEX,
+    GOAL_SLICE,
+    MAX_DISTANCE,
+    MAX_INSTRUCTION_LENGTH,
+    N_SUBSTEPS,
+    OBS_PER_ARM,
+    OBS_PER_ARM_WITH_GOAL,
+    PHASE_COMPLETED,
+    PHASE_INDEX,
+    PHASE_WAITING,
+    PHYSICS_DT,
+    POS_SLICE,
+    V_MAX,
+    WORKSPACE_HIGH,
+    WORKSPACE_LOW,
+)
+from vafn_gym.instructions import Instruction
+from vafn_gym.layout import ArmLayout
+from vafn_gym.robots import RobotSpec, get_robot
+from vafn_gym.sim import BulletSim
+from vafn_gym.task import INACTIVE_ARM_MODES, REWARD_TYPES, TARGET_MODES, InstructionTask, RewardConfig
+from vafn_gym.tasks import SPLITS, TaskSampler
+
+#: Episode budget when no max_episode_steps is given: BASE + PER_WAYPOINT * len(instruction) steps.
+BASE_EPISODE_STEPS = 50
+STEPS_PER_WAYPOINT = 80
+#: In "hold" mode the active arm waits until every other arm is within this distance of its home point.
+CLEARANCE_DISTANCE = 0.08
+MARKER_RADIUS = 0.02
+TABLE_COLOUR = (0.55, 0.4, 0.25, 1.0)
+MAX_RENDER_SIZE = 4096
+
+
+class MultiArmEnv(gym.Env):
+    """N robot arms around one table follow an :class:`Instruction` (an ordered list of arm/target waypoints).
+
+    :param n_arms: number of arms (ignored when ``layout`` is given).
+    :param robot: robot model: "kuka" (default), "panda", "xarm" or a :class:`RobotSpec`.
+    :param layout: a full :class:`ArmLayout` (base circle, homes, default targets, shared region); by default
+        ``n_arms`` arms on the robot's preferred base circle.
+    :param targets: where the targets of arm-only waypoints come from: "default" (each arm's fixed point),
+        "per_arm" (one hidden target per arm per instruction, reused on every visit) or "per_waypoint".
+    :param observe_goal: append each arm's current target to its observation block (8 numbers per arm instead of 5).
+    :param inactive_arms: "hold": the env returns every non-active arm home and holds it there, those arms' action
+        entries are ignored (``info["ignored_arms"]``), and the active arm is held until the others are clear of the
+        shared region (``info["gated"]``); "policy": every arm's action counts and inactive arms are rewarded for
+        progress toward home.
+    :param instruction: a fixed instruction for every episode (anything :meth:`Instruction.coerce` accepts); ``None``
+        samples one per episode from the task sampler.
+    :param split: which split of the task distribution to sample from ("train", "validation", "test").
+    :param min_length: shortest sampled instruction.
+    :param max_length: longest sampled instruction.
+    :param split_seed: seed of the train/validation/test assignment of orders.
+    :param reward_type: "dense" (shaped, default) or "sparse" (+1 per reached waypoint, -1 on the first contact).
+    :param reward_kwargs: overrides of :class:`RewardConfig` weights, e.g. ``dict(progress_weight=5.0)``.
+    :param terminate_on_collision: end the episode at the first arm-arm contact.
+    :param safety_margin: if > 0, also penalise arm pairs closer than this (metres, from ``getClosestPoints``).
+    :param max_episode_steps: truncation horizon; ``None`` gives ``50 + 80 * len(instruction)``.
+    :param render_mode: "rgb_array" (headless TinyRenderer) or "human" (GUI window; needs a display).
+    :param render_width: frame width in pixels.
+    :param render_height: frame height in pixels.
+    :param n_substeps: physics steps (of ``PHYSICS_DT``) per control step.
+    """
+
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": int(round(1.0 / (PHYSICS_DT * N_SUBSTEPS)))}
+
+    def __init__(
+        self,
+        n_arms: int = 3,
+        robot: str | RobotSpec = "kuka",
+        layout: ArmLayout | None = None,
+        targets: str = "default",
+        observe_goal: bool = False,
+        inactive_arms: str = "hold",
+        instruction: Any = None,
+        split: str = "train",
+        min_length: int = 1,
+        max_length: int = MAX_INSTRUCTION_LENGTH,
+        split_seed: int = 0,
+        reward_type: str = "dense",
+        reward_kwargs: Mapping[str, Any] | None = None,
+        terminate_on_collision: bool = False,
+        safety_margin: float = 0.0,
+        max_episode_steps: int | None = None,
+        render_mode: str | None = None,
+        render_width: int = 480,
+        render_height: int = 360,
+        n_substeps: int = N_SUBSTEPS,
+    ) -> None:
+        self.robot = get_robot(robot)
+        if layout is None:
+            layout = ArmLayout(n_arms=check_int("n_arms", n_arms, 2), base_radius=self.robot.base_radius)
+        elif not isinstance(layout, ArmLayout):
+            raise TypeError(f"layout must be an ArmLayout, got {type(layout).__name__}")
+        layout.check_feasible(self.robot)
+        self.layout = layout
+        self.targets = check_choice("targets", targets, TARGET_MODES)
+        self.observe_goal = check_bool("observe_goal", observe_goal)
+        self.inactive_arms = check_choice("inactive_arms", inactive_arms, INACTIVE_ARM_MODES)
+        check_choice("split", split, SPLITS)
+        check_choice("reward_type", reward_type, REWARD_TYPES)
+        if reward_kwargs is not None and not isinstance(reward_kwargs, Mapping):
+            raise TypeError(f"reward_kwargs must be a dict, got {type(reward_kwargs).__name__}")
+        reward = RewardConfig.from_kwargs(reward_kwargs)
+        self.terminate_on_collision = check_bool("terminate_on_collision", terminate_on_collision)
+        self.safety_margin = check_number("safety_margin", safety_margin, 0.0, 1.0)
+        self.fixed_max_episode_steps = (
+            None if max_episode_steps is None else check_int("max_episode_steps", max_episode_steps, 1)
+        )
+        if render_mode is not None:
+            check_choice("render_mode", render_mode, self.metadata["render_modes"])
+        self.render_mode = render_mode
+        self.render_size = (
+            check_int("render_width", render_width, 1, MAX_RENDER_SIZE),
+            check_int("render_height", render_height, 1, MAX_RENDER_SIZE),
+        )
+        n_substeps = check_int("n_substeps", n_substeps, 1, 1000)
+        self.sampler = TaskSampler(
+            split, self.targets, check_int("min_length", min_length, 0), check_int("max_length", max_length, 0),
+            split_seed=check_int("split_seed", split_seed), layout=layout,
+        )
+        self._task: Instruction | None = None if instruction is None else self._coerce(instruction)
+
+        self.sim = BulletSim(gui=render_mode == "human", n_substeps=n_substeps)
+        with self.sim.no_rendering():
+            self.sim.load_urdf("plane.urdf", np.zeros(3))
+            self.sim.create_table_top(layout.base_radius, TABLE_COLOUR)
+            self.arms = {
+                arm: Arm(self.sim, self.robot, layout.base_position(arm), layout.base_yaw(arm), layout.home_point(arm))
+                for arm in layout.arm_ids
+            }
+            self.markers = {
+                arm: self.sim.create_marker(self.arms[arm].home, MARKER_RADIUS, layout.colour(arm))
+                for arm in layout.arm_ids
+            }
+        homes = {arm_id: arm.home for arm_id, arm in self.arms.items()}
+        self.task = InstructionTask(layout, self.targets, self.inactive_arms, reward_type, reward, homes)
+
+        self.obs_per_arm = OBS_PER_ARM_WITH_GOAL if self.observe_goal else OBS_PER_ARM
+        self.action_space = spaces.Box(-1.0, 1.0, shape=(layout.action_dim,), dtype=np.float32)
+        self.observation_space = self._make_observation_space()
+        self.gated = False
+
+    @property
+    def n_arms(self) -> int:
+        """Number of arms."""
+        return self.layout.n_arms
+
+    def _coerce(self, instruction: Any) -> Instruction:
+        instruction = Instruction.coerce(instruction, n_arms=self.layout.n_arms)
+        if len(instruction) > MAX_INSTRUCTION_LENGTH:
+            raise ValueError(f"instruction has {len(instruction)} waypoints; at most {MAX_INSTRUCTION_LENGTH}")
+        return instruction
+
+    # --- spaces and observation ---
+    def _make_observation_space(self) -> spaces.Box:
+        low = np.concatenate([WORKSPACE_LOW, [0.0, PHASE_WAITING]])
+        high = np.concatenate([WORKSPACE_HIGH, [MAX_DISTANCE, PHASE_COMPLETED]])
+        if self.observe_goal:
+            low, high = np.concatenate([low, WORKSPACE_LOW]), np.concatenate([high, WORKSPACE_HIGH])
+        low, high = np.tile(low, self.n_arms), np.tile(high, self.n_arms)
+        return spaces.Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
+
+    def obs_slice(self, arm: int) -> slice:
+        """Slice of the observation that belongs to ``arm`` (1-based)."""
+        return self.layout.block_slice(arm, self.obs_per_arm)
+
+    def _positions(self) -> dict[int, np.ndarray]:
+        return {arm_id: arm.ee_position for arm_id, arm in self.arms.items()}
+
+    def _observation(self, positions: Mapping[int, np.ndarray], distances: np.ndarray) -> np.ndarray:
+        obs = np.zeros(self.observation_space.shape, dtype=np.float64)
+        for arm, distance in zip(self.layout.arm_ids, distances):
+            block = obs[self.obs_slice(arm)]
+            block[POS_SLICE] = positions[arm]
+            block[DIST_INDEX] = distance
+            block[PHASE_INDEX] = self.task.phase(arm)
+            if self.observe_goal:
+                block[GOAL_SLICE] = self.task.current_target(arm)
+        return np.clip(obs, self.observation_space.low, self.observation_space.high).astype(np.float32)
+
+    def observe(self) -> np.ndarray:
+        """The current observation, without stepping (e.g. after a controller starts an instruction)."""
+        positions = self._positions()
+        return self._observation(positions, self.task.distances(positions))
+
+    # --- the task, as Meta-World exposes it ---
+    @property
+    def instruction(self) -> Instruction:
+        """The instruction being executed (targets resolved)."""
+        return self.task.instruction
+
+    @property
+    def active_arm(self) -> int | None:
+        """The arm executing the current waypoint, or None."""
+        return self.task.active_arm
+
+    def set_task(self, task: Any) -> None:
+        """Use ``task`` (anything :meth:`Instruction.coerce` accepts; ``None`` = sample) from the next reset on."""
+        self._task = None if task is None else self._coerce(task)
+
+    def get_task(self) -> Instruction:
+        """The instruction of the current episode, targets resolved (pass it to :meth:`set_task` to replay it)."""
+        return self.task.instruction
+
+    # --- episode ---
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        """Home every arm and start an instruction (``options={"instruction": ...}`` overrides the task for one episode)."""
+        if options is not None and not isinstance(options, Mapping):
+            raise TypeError(f"options must be a dict or None, got {type(options).__name__}")
+        instruction = None
+        if options and "instruction" in options:
+            instruction = self._coerce(options["instruction"])  # validated before anything changes
+        super().reset(seed=seed)
+        if seed is not None:
+            self.sampler.seed(int(self.np_random.integers(2**63)))
+        for arm in self.arms.values():
+            arm.reset()
+        self._begin_episode(instruction)
+        return self.observe(), self._info(self.task.distances(self._positions()), contact=False)
+
+    def _begin_episode(self, instruction: Instruction | None) -> None:
+        """Start the episode's instruction: the option's, the fixed task's or a sampled one."""
+        if instruction is None:
+            instruction = self._task if self._task is not None else self.sampler.sample()
+        self.start_instruction(instruction)
+
+    def start_instruction(self, instruction: Instruction) -> None:
+        """Begin ``instruction`` from the arms' current state (targets resolved with the env's random stream)."""
+        self.task.start(self.task.resolve(instruction, self.np_random))
+        self.gated = False
+        self._update_markers()
+
+    def max_episode_steps(self) -> int:
+        """Truncation horizon of the current episode."""
+        if self.fixed_max_episode_steps is not None:
+            return self.fixed_max_episode_steps
+        return self.default_instruction_budget()
+
+    def default_instruction_budget(self) -> int:
+        """Steps the current instruction gets by default: ``50 + 80 * len(instruction)``."""
+        return BASE_EPISODE_STEPS + STEPS_PER_WAYPOINT * len(self.task.instruction)
+
+    def _update_markers(self) -> None:
+        for arm, marker in self.markers.items():
+            self.sim.move_marker(marker, self.task.current_target(arm))
+
+    def _validate_action(self, action: Any) -> np.ndarray:
+        try:
+            raw = np.asarray(action)
+            if raw.dtype.kind not in "iuf":
+                raise TypeError(f"dtype {raw.dtype}")
+            array = raw.astype(np.float64)
+        except (TypeError, ValueError, OverflowError) as error:
+            raise ValueError(f"action must be {self.layout.action_dim} real numbers; got entries that are not ({error})")
+        if array.shape != (self.layout.action_dim,):
+            raise ValueError(f"action must have shape ({self.layout.action_dim},), got {array.shape}")
+        if not np.all(np.isfinite(array)):
+            bad = np.flatnonzero(~np.isfinite(array)).tolist()
+            raise ValueError(f"action has non-finite entries at indices {bad}; nothing was sent to the simulator")
+        return np.clip(array, -1.0, 1.0)
+
+    def _clear_of_shared_region(self, positions: Mapping[int, np.ndarray], active: int) -> bool:
+        return all(
+            np.linalg.norm(positions[arm] - self.arms[arm].home) < CLEARANCE_DISTANCE
+            for arm in self.layout.arm_ids if arm != active
+        )
+
+    def _apply_action(self, action: np.ndarray, positions: Mapping[int, np.ndarray]) -> None:
+        dt, active = self.sim.dt, self.task.active_arm
+        hold_mode = self.inactive_arms == "hold"
+        self.gated = hold_mode and active is not None and not self._clear_of_shared_region(positions, active)
+        for arm_id, arm in self.arms.items():
+            if hold_mode and arm_id != active:
+                arm.command_toward(arm.home, dt, positions[arm_id])
+            elif self.gated:
+                arm.command_velocity(np.zeros(3), dt, positions[arm_id])
+            else:
+                arm.command_velocity(action[self.layout.action_slice(arm_id)] * V_MAX, dt, positions[arm_id])
+        self.sim.step()
+
+    def _arm_contact(self) -> bool:
+        return any(self.sim.contact_count(self.arms[a].body, self.arms[b].body) > 0 for a, b in self.layout.arm_pairs)
+
+    def _too_close(self) -> bool:
+        return self.safety_margin > 0 and any(
+            self.sim.closest_points_count(self.arms[a].body, self.arms[b].body, self.safety_margin) > 0
+            for a, b in self.layout.arm_pairs
+        )
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """Apply an end-effector velocity command (3 per arm, in [-1, 1] × ``V_MAX``) for one control step."""
+        positions, reward, contact = self._advance(action)
+        terminated = self.task.complete or (contact and self.terminate_on_collision)
+        truncated = not terminated and self.task.steps >= self.max_episode_steps()
+        distances = self.task.distances(positions)
+        return self._observation(positions, distances), reward, terminated, truncated, self._info(distances, contact)
+
+    def _advance(self, action: Any) -> tuple[dict[int, np.ndarray], float, bool]:
+        """Validate and apply an action, account it in the task; returns (positions, reward, contact)."""
+        action = self._validate_action(action)
+        before = self._positions()
+        self._apply_action(action, before)
+        after = self._positions()
+        contact = self._arm_contact()
+        index = self.task.waypoint_index
+        reward = self.task.step(before, after, contact, self._too_close())
+        if self.task.waypoint_index != index:
+            self._update_markers()
+        return after, reward, contact
+
+    def _info(self, distances: np.ndarray, contact: bool) -> dict[str, Any]:
+        info = self.task.info(distances, contact)
+        active = self.task.active_arm
+        info["gated"] = self.gated
+        info["ignored_arms"] = (
+            [arm for arm in self.layout.arm_ids if arm != active or self.gated] if self.inactive_arms == "hold" else []
+        )
+        return info
+
+    # --- rendering ---
+    def render(self) -> np.ndarray | None:
+        """An RGB frame in "rgb_array" mode (the GUI draws itself in "human" mode)."""
+        if self.render_mode != "rgb_array":
+            return None
+        width, height = self.render_size
+        distance = 1.1 + self.layout.base_radius
+        return self.sim.render(width, height, target=np.array([0.0, 0.0, 0.3]), distance=distance, yaw=30.0, pitch=-30.0)
+
+    def close(self) -> None:
+        """Release the physics client; safe to call twice."""
+        self.sim.close()

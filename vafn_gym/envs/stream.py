@@ -1,0 +1,181 @@
+"""MultiArmStreamEnv: the long-horizon, queue-driven variant; instructions arrive through the Dynamic Instruction Queue."""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+
+from vafn_gym.checks import check_bool, check_int, check_number
+from vafn_gym.envs.multi_arm import MultiArmEnv
+from vafn_gym.instructions import Instruction
+from vafn_gym.queue import ArrivalProcess, InstructionQueue, PoissonArrivals, QueuedInstruction, ScheduledArrivals
+
+#: Source name of the items the env's own arrival process enqueues (dropped on reset; user items are kept).
+ARRIVAL_SOURCE = "arrival-process"
+DEFAULT_HORIZON = 2000
+
+
+class MultiArmStreamEnv(MultiArmEnv):
+    """Instructions arrive asynchronously; the arms hold when the queue is empty, and finishing one starts the next.
+
+    Episodes never terminate on success: they are truncated at ``horizon`` steps (2,000, the paper's long-horizon test).
+    Per-instruction outcomes are appended to :attr:`records`; malformed queued items to :attr:`errors` (the loop goes
+    on).
+
+    :param arrivals: ``"poisson"`` (seeded, instructions from the task sampler), ``None`` (only user code enqueues,
+        e.g. ``env.unwrapped.queue.enqueue("2,3,1")`` from another thread), a schedule ``{step: instruction(s)}`` or
+        any :class:`ArrivalProcess`.
+    :param arrival_rate: mean arrivals per step of the Poisson process.
+    :param horizon: steps per episode.
+    :param queue_capacity: bound of the queue.
+    :param overflow: the queue's overflow policy, "raise" or "drop_oldest".
+    :param auto_dequeue: start the next queued instruction automatically; set False when a controller (e.g.
+        :class:`vafn_sb3.OnlineController`) dequeues itself through :meth:`start_next`.
+    :param instruction_timeout: steps allowed per instruction (default ``50 + 80 * len``); a timed-out one is recorded
+        and skipped.
+    :param kwargs: everything :class:`MultiArmEnv` accepts (arms, robot, targets, reward, rendering, ...).
+    """
+
+    def __init__(
+        self,
+        arrivals: str | Mapping[int, Any] | ArrivalProcess | None = "poisson",
+        arrival_rate: float = 0.005,
+        horizon: int = DEFAULT_HORIZON,
+        queue_capacity: int = 64,
+        overflow: str = "drop_oldest",
+        auto_dequeue: bool = True,
+        instruction_timeout: int | None = None,
+        **kwargs: Any,
+    ) -> None:
+        if "instruction" in kwargs or "max_episode_steps" in kwargs:
+            raise ValueError("MultiArmStreamEnv takes instructions from its queue; use arrivals= and horizon=")
+        self.horizon = check_int("horizon", horizon, 1)
+        self.auto_dequeue = check_bool("auto_dequeue", auto_dequeue)
+        self.instruction_timeout = (
+            None if instruction_timeout is None else check_int("instruction_timeout", instruction_timeout, 1)
+        )
+        arrival_rate = check_number("arrival_rate", arrival_rate, 0.0, 1.0)
+        super().__init__(max_episode_steps=self.horizon, **kwargs)
+        self.queue = InstructionQueue(
+            capacity=check_int("queue_capacity", queue_capacity, 1), overflow=overflow, n_arms=self.n_arms
+        )
+        self.arrival_process = self._make_arrivals(arrivals, arrival_rate)
+        self.total_steps = 0
+        self.current: QueuedInstruction | None = None
+        self.started_at = 0
+        self._reset_seed: int | None = None
+        self.records: list[dict[str, Any]] = []
+        self.errors: list[str] = []
+
+    def _make_arrivals(self, arrivals: Any, rate: float) -> ArrivalProcess | None:
+        if arrivals is None or isinstance(arrivals, ArrivalProcess):
+            return arrivals
+        if isinstance(arrivals, str) and arrivals == "poisson":
+            return PoissonArrivals(rate, sampler=self.sampler.sample, seed=0)
+        if isinstance(arrivals, Mapping):
+            return ScheduledArrivals(arrivals)
+        raise ValueError(f"arrivals must be 'poisson', None, a schedule or an ArrivalProcess, got {arrivals!r:.60}")
+
+    @property
+    def holding(self) -> bool:
+        """True while no instruction is being executed (the queue was empty)."""
+        return self.current is None
+
+    def _begin_episode(self, instruction: Instruction | None) -> None:
+        """Drop the previous episode's own arrivals (user-enqueued items are kept) and start holding."""
+        if instruction is not None:
+            raise ValueError("MultiArmStreamEnv takes instructions from its queue, not from reset options")
+        if self.arrival_process is not None:
+            self.arrival_process.reset(None if self._reset_seed is None else int(self.np_random.integers(2**63)))
+        self.queue.discard(lambda item: item.source == ARRIVAL_SOURCE)
+        self.total_steps = 0
+        self.records, self.errors = [], []
+        self._hold()
+        self._pump()
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        """Home the arms and start holding; the info carries the stream's state."""
+        self._reset_seed = seed
+        obs, _ = super().reset(seed=seed, options=options)
+        return obs, self._stream_info(self.task.distances(self._positions()), False, [])
+
+    def _hold(self) -> None:
+        self.current = None
+        self.start_instruction(Instruction())
+
+    def start_next(self) -> QueuedInstruction | None:
+        """Dequeue and start the next valid instruction (malformed ones are recorded in :attr:`errors` and skipped)."""
+        while True:
+            item = self.queue.dequeue()
+            if item is None:
+                self._hold()
+                return None
+            try:
+                instruction = self._coerce(item.instruction)
+                self.start_instruction(instruction)
+            except ValueError as error:
+                self.errors.append(f"instruction #{item.sequence} from {item.source!r:.60} rejected: {error}")
+                continue
+            self.current = item
+            self.started_at = self.total_steps
+            return item
+
+    def _pump(self) -> None:
+        """Feed this step's arrivals and, when idle and auto_dequeue is on, start the next instruction."""
+        if self.arrival_process is not None:
+            self.arrival_process.feed(self.queue, self.total_steps, source=ARRIVAL_SOURCE)
+        if self.current is None and self.auto_dequeue:
+            self.start_next()
+
+    def _finish(self, outcome: str) -> dict[str, Any]:
+        assert self.current is not None
+        record = {
+            "sequence": self.current.sequence,
+            "source": self.current.source,
+            "instruction": self.instruction.to_code(),
+            "arrival_time": self.current.arrival_time,
+            "start_step": self.started_at,
+            "end_step": self.total_steps,
+            "waypoints_reached": self.task.waypoint_index,
+            "collided": self.task.collided,
+            "outcome": outcome,
+            "success": outcome == "completed" and not self.task.collided,
+        }
+        self.records.append(record)
+        self._hold()
+        return record
+
+    def instruction_budget(self) -> int:
+        """Steps allowed for the current instruction."""
+        if self.instruction_timeout is not None:
+            return self.instruction_timeout
+        return self.default_instruction_budget()
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """One control step; finished or timed-out instructions are recorded and the next one starts."""
+        positions, reward, contact = self._advance(action)
+        self.total_steps += 1
+        events = []
+        if self.current is not None and self.task.complete:
+            events.append(self._finish("completed"))
+        elif self.current is not None and self.task.steps >= self.instruction_budget():
+            events.append(self._finish("timeout"))
+        self._pump()
+        terminated = bool(contact and self.terminate_on_collision)
+        truncated = not terminated and self.total_steps >= self.horizon
+        distances = self.task.distances(positions)
+        info = self._stream_info(distances, contact, events)
+        return self._observation(positions, distances), reward, terminated, truncated, info
+
+    def _stream_info(self, distances: np.ndarray, contact: bool, events: list[dict]) -> dict[str, Any]:
+        info = self._info(distances, contact)
+        info.update(
+            is_success=all(r["success"] for r in self.records),
+            holding=self.holding,
+            queue_length=len(self.queue),
+            instruction_sequence=None if self.current is None else self.current.sequence,
+            finished=events,
+            total_steps=self.total_steps,
+        )
+        return info

@@ -1,0 +1,193 @@
+"""The instruction-following task: target resolution, phases, waypoint advance, reward, success and ``info``.
+
+The env wires the simulator, the arms and this task together (as panda-gym's ``RobotTaskEnv`` does); everything an
+episode *means* lives here, in one place.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from typing import Any, Mapping
+
+import numpy as np
+
+from vafn_gym.constants import PHASE_COMPLETED, PHASE_EXECUTING, PHASE_WAITING, SUCCESS_TOLERANCE
+from vafn_gym.instructions import Instruction, Waypoint
+from vafn_gym.layout import ArmLayout
+
+#: Where the targets of waypoints that name an arm only come from.
+TARGET_MODES = ("default", "per_arm", "per_waypoint")
+#: Who moves the arms that are not executing a waypoint: the env's low-level controller, or the policy.
+INACTIVE_ARM_MODES = ("hold", "policy")
+REWARD_TYPES = ("dense", "sparse")
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Weights of the dense reward (every field is an env kwarg through ``reward_kwargs=dict(...)``).
+
+    Per step: ``progress_weight`` × decrease of the active arm's distance to its target, ``+ waypoint_bonus`` per
+    reached waypoint, ``home_progress_weight`` × decrease of every inactive arm's distance to home (only where the
+    policy moves inactive arms), ``- hold_weight`` × mean distance of inactive arms from home (a level penalty: off by
+    default, because the learner cannot assign it to the right arm), ``- collision_penalty`` once, on the episode's
+    first arm-arm contact, and ``- proximity_penalty`` per step with arms closer than the env's ``safety_margin``.
+    The sparse reward is ``+1`` per reached waypoint and ``-1`` on the first contact.
+    """
+
+    progress_weight: float = 10.0
+    waypoint_bonus: float = 1.0
+    home_progress_weight: float = 10.0
+    hold_weight: float = 0.0
+    collision_penalty: float = 5.0
+    proximity_penalty: float = 1.0
+
+    def __post_init__(self) -> None:
+        for item in fields(self):
+            value = getattr(self, item.name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+                raise ValueError(f"reward weight {item.name} must be a finite number, got {value!r}")
+
+    @classmethod
+    def from_kwargs(cls, kwargs: Mapping[str, Any] | None) -> "RewardConfig":
+        """A config from a dict of overrides; ``ValueError`` naming any unknown key."""
+        kwargs = dict(kwargs or {})
+        known = {item.name for item in fields(cls)}
+        unknown = sorted(set(kwargs) - known)
+        if unknown:
+            raise ValueError(f"unknown reward_kwargs {unknown}; known: {sorted(known)}")
+        return cls(**kwargs)
+
+    def as_dict(self) -> dict[str, float]:
+        """The weights as a plain dict."""
+        return asdict(self)
+
+
+class InstructionTask:
+    """One instruction being executed by the arms of ``layout``.
+
+    :param layout: the arm layout (arm ids, default targets, shared region).
+    :param targets: "default" (each arm's fixed default target), "per_arm" (one hidden target per arm per instruction,
+        reused for every visit of that arm) or "per_waypoint" (a new hidden target for every waypoint).
+    :param inactive_arms: "hold" (the env moves non-active arms) or "policy" (the policy does; adds the home-progress
+        reward term).
+    :param reward_type: "dense" or "sparse".
+    :param reward: the dense-reward weights.
+    :param homes: rest point per arm (default: the layout's nominal home points; the env passes the measured ones).
+    """
+
+    def __init__(
+        self, layout: ArmLayout, targets: str = "default", inactive_arms: str = "hold", reward_type: str = "dense",
+        reward: RewardConfig | None = None, homes: Mapping[int, np.ndarray] | None = None,
+    ) -> None:
+        self.layout = layout
+        self.targets = targets
+        self.inactive_arms = inactive_arms
+        self.reward_type = reward_type
+        self.reward_config = reward or RewardConfig()
+        self.homes = dict(homes) if homes is not None else {arm: layout.home_point(arm) for arm in layout.arm_ids}
+        self.instruction = Instruction()
+        self.waypoint_index = 0
+        self.steps = 0
+        self.collided = False
+
+    # --- targets ---
+    def resolve(self, instruction: Instruction, rng: np.random.Generator) -> Instruction:
+        """``instruction`` with every target explicit (waypoints that name an arm only get one by ``targets``)."""
+        instruction.check_arms(self.layout.n_arms)
+        per_arm: dict[int, np.ndarray] = {}
+        waypoints = []
+        for waypoint in instruction:
+            if waypoint.target is not None:
+                target = np.asarray(waypoint.target)
+            elif self.targets == "default":
+                target = self.layout.default_target(waypoint.arm)
+            else:
+                if self.targets == "per_waypoint" or waypoint.arm not in per_arm:
+                    per_arm[waypoint.arm] = self.layout.sample_shared_target(rng)
+                target = per_arm[waypoint.arm]
+            waypoints.append(Waypoint(waypoint.arm, tuple(float(x) for x in target)))
+        return Instruction(waypoints)
+
+    # --- state ---
+    def start(self, instruction: Instruction) -> None:
+        """Begin ``instruction`` (targets already resolved)."""
+        self.instruction = instruction
+        self.waypoint_index = 0
+        self.steps = 0
+        self.collided = False
+
+    @property
+    def active_arm(self) -> int | None:
+        """The arm executing the current waypoint, or None when the instruction is complete."""
+        if self.waypoint_index < len(self.instruction):
+            return self.instruction[self.waypoint_index].arm
+        return None
+
+    @property
+    def complete(self) -> bool:
+        """Whether every waypoint has been reached."""
+        return self.active_arm is None
+
+    def current_target(self, arm: int) -> np.ndarray:
+        """``arm``'s next pending waypoint target, or its home point when it has none left."""
+        for index in range(self.waypoint_index, len(self.instruction)):
+            if self.instruction[index].arm == arm:
+                return self.instruction[index].target_array
+        return self.homes[arm]
+
+    def phase(self, arm: int) -> int:
+        """Phase flag: 1 executing, 0 waiting for a later waypoint, 2 completed (no waypoint left)."""
+        if arm == self.active_arm:
+            return PHASE_EXECUTING
+        if arm in self.instruction.remaining_arms(self.waypoint_index):
+            return PHASE_WAITING
+        return PHASE_COMPLETED
+
+    def distances(self, positions: Mapping[int, np.ndarray]) -> np.ndarray:
+        """Distance of every arm (in id order) to its current target."""
+        return np.array([np.linalg.norm(positions[arm] - self.current_target(arm)) for arm in self.layout.arm_ids])
+
+    # --- one step ---
+    def step(
+        self, before: Mapping[int, np.ndarray], after: Mapping[int, np.ndarray], contact: bool, too_close: bool
+    ) -> float:
+        """Account one control step (positions before and after it); advances the waypoint; returns the reward."""
+        self.steps += 1
+        active = self.active_arm
+        first_contact = contact and not self.collided
+        self.collided |= contact
+        reached, progress = 0, 0.0
+        if active is not None:
+            target = self.current_target(active)
+            distance_after = float(np.linalg.norm(after[active] - target))
+            progress = float(np.linalg.norm(before[active] - target)) - distance_after
+            if distance_after < SUCCESS_TOLERANCE:
+                reached = 1
+                self.waypoint_index += 1
+        if self.reward_type == "sparse":
+            return float(reached) - float(first_contact)
+        weights = self.reward_config
+        inactive = [arm for arm in self.layout.arm_ids if arm != active]
+        reward = weights.progress_weight * progress + weights.waypoint_bonus * reached
+        if self.inactive_arms == "policy" and weights.home_progress_weight and inactive:
+            home_progress = [
+                np.linalg.norm(before[arm] - self.homes[arm]) - np.linalg.norm(after[arm] - self.homes[arm])
+                for arm in inactive
+            ]
+            reward += weights.home_progress_weight * float(np.sum(home_progress))
+        if weights.hold_weight and inactive:
+            reward -= weights.hold_weight * float(np.mean([np.linalg.norm(after[a] - self.homes[a]) for a in inactive]))
+        reward -= weights.collision_penalty * float(first_contact) + weights.proximity_penalty * float(too_close)
+        return float(reward)
+
+    def info(self, distances: np.ndarray, contact: bool) -> dict[str, Any]:
+        """The task part of the env's ``info``."""
+        return {
+            "is_success": bool(self.complete and not self.collided),
+            "collision": bool(contact),
+            "collided": bool(self.collided),
+            "active_arm": self.active_arm,
+            "waypoint_index": self.waypoint_index,
+            "instruction": self.instruction,
+            "distances": distances,
+        }
