@@ -137,13 +137,18 @@ def test_read_only_configuration():
         queue.capacity = 10  # type: ignore[misc]
 
 
-@pytest.mark.parametrize("bad", ["2,4", [0], "1,x", [1] * 11, "[1,2", None, 7, [1.5], {"arm": 1}])
+@pytest.mark.parametrize(
+    "bad",
+    ["2,4", [0], "1,x", [1] * 11, "[1,2", None, 7, [1.5], {"arm": 1}, "2,,3", {1, 2}, b"\xff", "[" * 1000,
+     '[{"arm":2,"target":[0,0,1' + "0" * 310 + "]}]", '[{"arm": 2, "targt": [0, 0, 0.3]}]', [True], ["1"]],
+)
 def test_malformed_input_raises_and_leaves_queue_unchanged(bad):
-    queue = InstructionQueue(clock=FakeClock())
+    queue = InstructionQueue(clock=FakeClock(), n_arms=3)
     queue.enqueue("1")
     before = queue.snapshot()
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError) as error:
         queue.enqueue(bad)
+    assert type(error.value) is ValueError and len(str(error.value)) < 200
     assert queue.snapshot() == before
     assert queue.enqueued == 1
     assert queue.enqueue("2").sequence == 1  # the rejected item consumed no sequence number
@@ -164,10 +169,64 @@ def test_validate_false_defers_the_error_to_the_consumer():
     assert queue.dequeue().instruction == Instruction.from_arms([3, 1])
 
 
-@pytest.mark.parametrize("timeout", [-1.0, float("nan"), "1"])
-def test_dequeue_rejects_bad_timeouts(timeout):
+def test_n_arms_is_checked_on_enqueue_and_on_deferred_parsing():
+    queue = InstructionQueue(n_arms=3)
+    assert queue.n_arms == 3 and InstructionQueue().n_arms is None
+    with pytest.raises(ValueError, match=r"waypoint 1: arm 4 is outside the allowed range 1\.\.3"):
+        queue.enqueue(Instruction.parse("2,4"))
+    assert InstructionQueue().enqueue("2,4").instruction.arms == (2, 4)
+    entry = queue.enqueue("2,4", validate=False)
+    with pytest.raises(ValueError, match="arm 4"):
+        entry.instruction
+    for bad in (0, True, 2.5, "3"):
+        with pytest.raises(ValueError, match="n_arms"):
+            InstructionQueue(n_arms=bad)
+
+
+@pytest.mark.parametrize("payload", ['[{"arm":2,"target":[0,0,1' + "0" * 310 + "]}]", "[" * 1000, b"\xff\xfe", {3, 1},
+                                     "２,３", object(), [[1] * 3] * 2, [10**5000]], ids=range(8))
+def test_deferred_parsing_raises_only_short_value_errors(payload):
+    entry = InstructionQueue().enqueue(payload, validate=False)
+    with pytest.raises(ValueError) as error:
+        entry.instruction
+    assert type(error.value) is ValueError and len(str(error.value)) < 200
+
+
+@pytest.mark.parametrize("kwargs", [{"source": 5}, {"metadata": [("a", 1)]}, {"metadata": "x"}])
+def test_enqueue_rejects_bad_source_and_metadata(kwargs):
+    queue = InstructionQueue()
     with pytest.raises(ValueError):
-        InstructionQueue().dequeue(timeout=timeout)
+        queue.enqueue("1", **kwargs)
+    assert queue.enqueued == 0
+
+
+def test_queue_full_message_is_short_even_for_huge_payloads():
+    queue = InstructionQueue(capacity=1)
+    queue.enqueue("1")
+    with pytest.raises(QueueFullError) as error:
+        queue.enqueue("[" + ",".join(["1"] * 5) + "]" + " " * 50_000, source="s" * 10_000)
+    assert len(str(error.value)) < 250
+
+
+@pytest.mark.parametrize("timeout", [-1.0, float("nan"), "1", True, -float("inf")])
+def test_dequeue_rejects_bad_timeouts(timeout):
+    queue = InstructionQueue()
+    for get in (queue.dequeue, queue.get_unacked):
+        with pytest.raises(ValueError, match="timeout"):
+            get(timeout=timeout)
+
+
+@pytest.mark.parametrize("forever", [float("inf"), 1e300, np.float64("inf")])
+def test_infinite_timeout_waits_forever(forever):
+    queue = InstructionQueue()
+    got: list = []
+    consumer = threading.Thread(target=lambda: got.append(queue.dequeue(timeout=forever)))
+    consumer.start()
+    time.sleep(0.05)
+    assert consumer.is_alive() and got == []
+    queue.enqueue("2")
+    consumer.join(timeout=5.0)
+    assert not consumer.is_alive() and got[0].instruction.arms == (2,)
 
 
 # --- overflow ---
@@ -238,6 +297,141 @@ def test_dequeue_timeout_expires_with_none():
     start = time.perf_counter()
     assert queue.dequeue() is None  # default: non-blocking
     assert time.perf_counter() - start < 0.04
+
+
+# --- acknowledged dequeue ---
+def _accounted(queue: InstructionQueue) -> bool:
+    return queue.enqueued == queue.dequeued + queue.dropped + queue.cleared + len(queue) + queue.in_flight
+
+
+def test_take_acknowledges_when_the_block_completes():
+    queue = InstructionQueue()
+    first, second = queue.enqueue("1"), queue.enqueue("2")
+    with queue.take() as entry:
+        assert entry is first
+        assert (len(queue), queue.in_flight, queue.unacked(), queue.peek()) == (1, 1, [first], second)
+        assert queue.snapshot() == [second] and list(queue) == [second] and _accounted(queue)
+    assert (len(queue), queue.in_flight, queue.dequeued, queue.requeued) == (1, 0, 1, 0)
+    assert _accounted(queue)
+
+
+def test_take_puts_the_entry_back_at_the_head_when_the_block_raises():
+    queue = InstructionQueue(clock=FakeClock())
+    entries = [queue.enqueue(code) for code in ("1", "2", "3")]
+    for error in (RuntimeError("boom"), KeyboardInterrupt(), SystemExit(1)):
+        with pytest.raises(type(error)):
+            with queue.take() as entry:
+                assert entry is entries[0]
+                raise error
+        assert queue.snapshot() == entries and queue.peek() is entries[0]  # same object: sequence and stamp kept
+        assert queue.in_flight == 0 and _accounted(queue)
+    assert (queue.requeued, queue.dequeued) == (3, 0)
+    assert queue.dequeue() is entries[0] and entries[0].arrival_time == 101.0 and entries[0].sequence == 0
+
+
+def test_take_on_an_empty_queue_yields_none_and_may_wait():
+    queue = InstructionQueue()
+    with queue.take() as entry:
+        assert entry is None
+    start = time.perf_counter()
+    with queue.take(timeout=0.05) as entry:
+        assert entry is None
+    assert time.perf_counter() - start >= 0.045
+    threading.Timer(0.05, lambda: queue.enqueue("3")).start()
+    with queue.take(timeout=float("inf")) as entry:
+        assert entry.instruction.arms == (3,)
+    assert queue.dequeued == 1 and _accounted(queue)
+
+
+def test_the_block_may_settle_the_entry_itself():
+    queue = InstructionQueue()
+    queue.enqueue("1")
+    with queue.take() as entry:
+        queue.nack(entry)
+    assert len(queue) == 1 and queue.dequeued == 0
+    with pytest.raises(ValueError, match="bad instruction"):
+        with queue.take() as entry:
+            queue.ack(entry)
+            raise ValueError("bad instruction")
+    assert len(queue) == 0 and queue.dequeued == 1 and queue.requeued == 1 and _accounted(queue)
+
+
+def test_ack_and_nack_need_an_entry_in_flight():
+    queue = InstructionQueue()
+    ready = queue.enqueue("1")
+    with pytest.raises(ValueError, match="not in flight"):
+        queue.ack(ready)  # never taken
+    entry = queue.get_unacked()
+    assert entry is ready
+    queue.ack(entry)
+    for settle in (queue.ack, queue.nack):
+        with pytest.raises(ValueError, match="not in flight"):
+            settle(entry)  # already acknowledged
+    other = InstructionQueue()
+    other.enqueue("1")
+    foreign = other.get_unacked()
+    queue.enqueue("2")
+    queue.get_unacked()
+    with pytest.raises(ValueError, match="not in flight"):
+        queue.ack(foreign)  # same sequence number, other queue
+    with pytest.raises(ValueError):
+        queue.nack("1")  # type: ignore[arg-type]
+    assert queue.in_flight == 1 and _accounted(queue)
+
+
+def test_nacked_entries_keep_arrival_order_among_themselves():
+    queue = InstructionQueue()
+    entries = [queue.enqueue(str(arm)) for arm in (1, 2, 3, 1)]
+    a, b, c = (queue.get_unacked() for _ in range(3))
+    queue.nack(a)
+    queue.nack(c)
+    queue.nack(b)
+    assert queue.snapshot() == entries
+    assert [e.sequence for e in queue.unacked()] == []
+
+
+def test_nack_on_a_full_queue_never_loses_the_entry():
+    for overflow in ("raise", "drop_oldest"):
+        queue = InstructionQueue(capacity=2, overflow=overflow)
+        first = queue.enqueue("1")
+        taken = queue.get_unacked()
+        queue.enqueue("2")
+        queue.enqueue("3")  # in-flight entries do not count toward the capacity
+        queue.nack(taken)
+        assert len(queue) == 3 and queue.snapshot()[0] is first and queue.dropped == 0
+        if overflow == "raise":
+            with pytest.raises(QueueFullError):
+                queue.enqueue("1,2")
+            assert len(queue) == 3
+        else:
+            queue.enqueue("1,2")
+            assert queue.dropped_items[0] is first and queue.dropped == 2 and len(queue) == 2
+        assert _accounted(queue)
+
+
+def test_clear_and_discard_leave_in_flight_entries_alone():
+    queue = InstructionQueue()
+    taken = queue.enqueue("1", source="process")
+    queue.enqueue("2", source="process")
+    assert queue.get_unacked() is taken
+    assert len(queue.discard(lambda e: e.source == "process")) == 1
+    assert queue.clear() == [] and queue.unacked() == [taken]
+    queue.nack(taken)
+    assert queue.snapshot() == [taken] and _accounted(queue)
+
+
+def test_blocked_consumer_wakes_on_nack():
+    queue = InstructionQueue()
+    queue.enqueue("2")
+    entry = queue.get_unacked()
+    got: list = []
+    consumer = threading.Thread(target=lambda: got.append(queue.dequeue(timeout=10.0)))
+    consumer.start()
+    time.sleep(0.05)
+    assert consumer.is_alive()
+    queue.nack(entry)
+    consumer.join(timeout=5.0)
+    assert not consumer.is_alive() and got == [entry]
 
 
 # --- concurrency ---
@@ -350,7 +544,9 @@ def test_scheduled_arrivals_and_feed():
 )
 def test_scheduled_arrivals_validate_at_construction(schedule, match):
     with pytest.raises(ValueError, match=match):
-        ScheduledArrivals(schedule)
+        ScheduledArrivals(schedule, n_arms=3)
+    with pytest.raises(ValueError, match="n_arms"):
+        ScheduledArrivals({}, n_arms=0)
 
 
 def test_scheduled_arrivals_feed_raises_when_full():
@@ -429,7 +625,7 @@ def test_poisson_sampler_receives_a_generator_and_bad_output_names_the_step():
         received.append(rng)
         return "1,4"
 
-    process = PoissonArrivals(rate=5.0, sampler=sampler, seed=0)
+    process = PoissonArrivals(rate=5.0, sampler=sampler, seed=0, n_arms=3)
     with pytest.raises(ValueError, match="step 12"):
         process.arrivals(12)
     assert isinstance(received[0], np.random.Generator)
@@ -439,7 +635,8 @@ def test_poisson_sampler_receives_a_generator_and_bad_output_names_the_step():
     "kwargs",
     [dict(rate=-0.1, instructions=["1"]), dict(rate=float("nan"), instructions=["1"]),
      dict(rate=1.0), dict(rate=1.0, instructions=["1"], sampler=_uniform_sampler),
-     dict(rate=1.0, instructions=[]), dict(rate=1.0, instructions=["1", "5"]), dict(rate=1.0, instructions="1,2"),
+     dict(rate=1.0, instructions=[]), dict(rate=1.0, instructions=["1", "5"], n_arms=3),
+     dict(rate=1.0, instructions="1,2"), dict(rate=1.0, instructions=["1"], n_arms=-2),
      dict(rate=1.0, instructions=["1"], burst_probability=1.5), dict(rate=1.0, instructions=["1"], burst_size=(0, 2)),
      dict(rate=1.0, instructions=["1"], burst_size=(4, 2)), dict(rate=1.0, instructions=["1"], burst_size=3),
      dict(rate=1.0, instructions=["1"], seed=-1), dict(rate=1.0, sampler="not callable")],

@@ -1,25 +1,28 @@
 """The Dynamic Instruction Queue: a bounded, thread-safe FIFO of timestamped instructions, and its arrival processes.
 
 Producers (speech, images, code, other threads) call :meth:`InstructionQueue.enqueue`; the controller calls
-:meth:`InstructionQueue.dequeue` and *holds* while the queue is empty. :class:`ArrivalProcess` subclasses turn a
-simulation step counter into arrivals so that a queue-driven episode is reproducible.
+:meth:`InstructionQueue.dequeue` and *holds* while the queue is empty. A consumer that may fail while handling an entry
+takes it with acknowledgement instead (:meth:`InstructionQueue.take`, or :meth:`~InstructionQueue.get_unacked` then
+:meth:`~InstructionQueue.ack` / :meth:`~InstructionQueue.nack`), so an entry is only gone once it was handled.
+:class:`ArrivalProcess` subclasses turn a simulation step counter into arrivals so that a queue-driven episode is
+reproducible.
 """
 
 from __future__ import annotations
 
 import math
-import reprlib
 import threading
 import time
 from abc import ABC, abstractmethod
 from collections import deque
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from numbers import Integral, Real
 from typing import Any, Callable, Iterator, Literal, Mapping, Sequence
 
 import numpy as np
 
-from vafn_gym.instructions import Instruction
+from vafn_gym.instructions import Instruction, brief_repr
 
 __all__ = [
     "ArrivalProcess",
@@ -52,6 +55,7 @@ class QueuedInstruction:
     :param sequence: the queue's arrival counter; strictly increasing in arrival order, starting at 0.
     :param source: free-form producer name (``"user"``, ``"speech"``, ``"schedule"``, ...).
     :param metadata: free-form extras, e.g. latency or confidence from a media stream (a copy of the caller's dict).
+    :param n_arms: the queue's arm count, checked by :attr:`instruction` (``None``: any arm id >= 1).
     """
 
     # payload and metadata may be unhashable (a raw list, a dict); sequence and arrival_time identify an entry.
@@ -60,11 +64,22 @@ class QueuedInstruction:
     sequence: int
     source: str = "user"
     metadata: dict = field(default_factory=dict, hash=False)
+    n_arms: int | None = field(default=None, compare=False)
 
     @property
     def instruction(self) -> Instruction:
-        """The payload as an :class:`Instruction`; raises ``ValueError`` for a malformed payload."""
-        return Instruction.coerce(self.payload)
+        """The payload as an :class:`Instruction`; raises only ``ValueError`` for a malformed payload."""
+        return Instruction.coerce(self.payload, n_arms=self.n_arms)
+
+
+def _wait_seconds(timeout: Any) -> float | None:
+    """A dequeue timeout as seconds to wait, ``None`` meaning forever (``None``, ``inf`` or beyond the lock's limit)."""
+    if timeout is None:
+        return None
+    if isinstance(timeout, (bool, np.bool_)) or not isinstance(timeout, Real) or math.isnan(timeout) or timeout < 0:
+        raise ValueError(f"timeout must be None or a number >= 0, got {brief_repr(timeout)}")
+    # Condition.wait raises OverflowError beyond TIMEOUT_MAX (about 49 days); anything that long is "forever".
+    return None if timeout >= threading.TIMEOUT_MAX else float(timeout)
 
 
 class InstructionQueue:
@@ -73,11 +88,21 @@ class InstructionQueue:
     One ``threading.Condition`` guards a ``collections.deque``; timestamps and sequence numbers are taken inside the
     lock, so arrival order, sequence order and timestamp order agree even with producers on many threads.
 
-    :param capacity: the most instructions the queue holds at once (>= 1).
+    Entries are *ready* (waiting in the queue) or *in flight* (taken with :meth:`take` / :meth:`get_unacked` and not
+    yet acknowledged). ``len``, :meth:`peek`, :meth:`snapshot`, iteration, :attr:`holding`, :meth:`clear`,
+    :meth:`discard` and the capacity all concern ready entries only, like ``queue.Queue``'s ``qsize`` and ``maxsize``;
+    :attr:`in_flight` and :meth:`unacked` show the others. An entry put back with :meth:`nack` is ready again at the
+    head of the queue, with its sequence number and timestamp, and is never evicted or refused on the way back: ``len``
+    may then exceed the capacity until consumers catch up (``"raise"`` refuses new entries meanwhile, ``"drop_oldest"``
+    evicts the oldest ready ones, the put-back entry first).
+
+    :param capacity: the most ready entries the queue holds at once (>= 1).
     :param overflow: what :meth:`enqueue` does when the queue is full: ``"raise"`` a :class:`QueueFullError` and change
-        nothing, or ``"drop_oldest"``: evict the oldest entry, count it in :attr:`dropped` and keep it in
+        nothing, or ``"drop_oldest"``: evict the oldest ready entry, count it in :attr:`dropped` and keep it in
         :attr:`dropped_items`.
     :param clock: zero-argument function giving the arrival timestamp in seconds (monotonic clocks only).
+    :param n_arms: the arm count of the layout the instructions are for: validated enqueues reject higher arm ids and
+        :attr:`QueuedInstruction.instruction` checks them (``None``: any arm id >= 1).
     """
 
     def __init__(
@@ -85,19 +110,25 @@ class InstructionQueue:
         capacity: int = 64,
         overflow: OverflowPolicy = "raise",
         clock: Callable[[], float] = time.perf_counter,
+        *,
+        n_arms: int | None = None,
     ) -> None:
         if isinstance(capacity, bool) or not isinstance(capacity, Integral):
-            raise ValueError(f"capacity must be an integer >= 1, got {capacity!r}")
+            raise ValueError(f"capacity must be an integer >= 1, got {brief_repr(capacity)}")
         if capacity < 1:
             raise ValueError(f"capacity must be >= 1, got {capacity}")
-        if overflow not in OVERFLOW_POLICIES:
-            raise ValueError(f"overflow must be one of {list(OVERFLOW_POLICIES)}, got {overflow!r}")
+        if not isinstance(overflow, str) or overflow not in OVERFLOW_POLICIES:
+            raise ValueError(f"overflow must be one of {list(OVERFLOW_POLICIES)}, got {brief_repr(overflow)}")
         if not callable(clock):
-            raise ValueError(f"clock must be callable, got {clock!r}")
+            raise ValueError(f"clock must be callable, got {brief_repr(clock)}")
+        if n_arms is not None:
+            Instruction().check_arms(n_arms)  # validates n_arms itself
         self._capacity = int(capacity)
         self._overflow: OverflowPolicy = overflow
         self._clock = clock
+        self._n_arms: int | None = None if n_arms is None else int(n_arms)
         self._items: deque[QueuedInstruction] = deque()
+        self._in_flight: dict[int, QueuedInstruction] = {}
         self._dropped_items: deque[QueuedInstruction] = deque(maxlen=DROPPED_HISTORY)
         self._cond = threading.Condition(threading.Lock())
         self._next_sequence = 0
@@ -105,17 +136,23 @@ class InstructionQueue:
         self._dequeued = 0
         self._dropped = 0
         self._cleared = 0
+        self._requeued = 0
 
     # --- configuration ---
     @property
     def capacity(self) -> int:
-        """The most instructions the queue holds at once."""
+        """The most ready entries the queue holds at once (entries put back by :meth:`nack` may exceed it)."""
         return self._capacity
 
     @property
     def overflow(self) -> OverflowPolicy:
         """The overflow policy: ``"raise"`` or ``"drop_oldest"``."""
         return self._overflow
+
+    @property
+    def n_arms(self) -> int | None:
+        """The arm count instructions are validated against, or ``None`` for any arm id >= 1."""
+        return self._n_arms
 
     # --- counters ---
     @property
@@ -125,7 +162,7 @@ class InstructionQueue:
 
     @property
     def dequeued(self) -> int:
-        """How many entries :meth:`dequeue` handed out."""
+        """How many entries left for good: handed out by :meth:`dequeue` or acknowledged with :meth:`ack`."""
         return self._dequeued
 
     @property
@@ -135,8 +172,22 @@ class InstructionQueue:
 
     @property
     def cleared(self) -> int:
-        """How many entries :meth:`clear` removed; ``enqueued == dequeued + dropped + cleared + len(queue)``."""
+        """How many entries :meth:`clear` / :meth:`discard` removed.
+
+        ``enqueued == dequeued + dropped + cleared + len(queue) + in_flight`` at any quiet moment.
+        """
         return self._cleared
+
+    @property
+    def requeued(self) -> int:
+        """How many times an in-flight entry was put back with :meth:`nack`."""
+        return self._requeued
+
+    @property
+    def in_flight(self) -> int:
+        """How many entries are taken but not yet acknowledged."""
+        with self._cond:
+            return len(self._in_flight)
 
     @property
     def dropped_items(self) -> list[QueuedInstruction]:
@@ -150,29 +201,34 @@ class InstructionQueue:
         item: Any,
         source: str = "user",
         validate: bool = True,
-        metadata: dict | None = None,
+        metadata: Mapping | None = None,
     ) -> QueuedInstruction:
         """Append an instruction, timestamped and numbered on arrival, and wake a waiting consumer.
 
         :param item: an :class:`Instruction`, machine code (``"2,3,1"``), a list of arm ids or instruction JSON.
         :param source: producer name stored on the entry.
-        :param validate: parse ``item`` now, raising ``ValueError`` and enqueueing nothing if it is malformed (the
-            stored payload is then the :class:`Instruction`); with ``False`` the raw ``item`` is stored and the error
-            surfaces on :attr:`QueuedInstruction.instruction`, so a stream can defer parsing to the consumer.
+        :param validate: parse ``item`` now, raising ``ValueError`` (and only that) and enqueueing nothing if it is
+            malformed (the stored payload is then the :class:`Instruction`); with ``False`` the raw ``item`` is stored
+            and the error surfaces on :attr:`QueuedInstruction.instruction`, so a stream can defer parsing to the
+            consumer.
         :param metadata: free-form extras stored (copied) on the entry.
         :return: the queued entry.
         :raises QueueFullError: when the queue is full and the policy is ``"raise"``; the queue is then unchanged.
         """
+        if not isinstance(source, str):
+            raise ValueError(f"source must be a string, got {brief_repr(source)}")
+        if metadata is not None and not isinstance(metadata, Mapping):
+            raise ValueError(f"metadata must be a mapping or None, got {brief_repr(metadata)}")
         # Parse outside the lock: it can be slow and never depends on the queue's state.
-        payload = Instruction.coerce(item) if validate else item
+        payload = Instruction.coerce(item, n_arms=self._n_arms) if validate else item
         extras = dict(metadata) if metadata is not None else {}
         with self._cond:
-            if len(self._items) >= self._capacity:
-                if self._overflow == "raise":
-                    raise QueueFullError(
-                        f"instruction queue is full ({self._capacity} entries); "
-                        f"rejected {reprlib.repr(item)} from {source!r}"
-                    )
+            if len(self._items) >= self._capacity and self._overflow == "raise":
+                raise QueueFullError(
+                    f"instruction queue is full ({self._capacity} entries); "
+                    f"rejected {brief_repr(item)} from {brief_repr(source)}"
+                )
+            while len(self._items) >= self._capacity:
                 self._dropped_items.append(self._items.popleft())
                 self._dropped += 1
             entry = QueuedInstruction(
@@ -181,6 +237,7 @@ class InstructionQueue:
                 sequence=self._next_sequence,
                 source=source,
                 metadata=extras,
+                n_arms=self._n_arms,
             )
             self._next_sequence += 1
             self._items.append(entry)
@@ -189,33 +246,133 @@ class InstructionQueue:
         return entry
 
     # --- consumer side ---
+    def _pop_ready(self, timeout: Any) -> QueuedInstruction | None:
+        """Under the lock: wait up to ``timeout`` for a ready entry and pop it (``None`` if there is none)."""
+        seconds = _wait_seconds(timeout)
+        if not self._items and seconds != 0:
+            self._cond.wait_for(lambda: bool(self._items), timeout=seconds)
+        return self._items.popleft() if self._items else None
+
     def dequeue(self, timeout: float | None = 0.0) -> QueuedInstruction | None:
         """Remove and return the oldest entry, waiting up to ``timeout`` seconds for one; ``None`` if still empty.
 
-        :param timeout: ``0`` returns at once, a positive number waits at most that long, ``None`` waits forever.
+        The entry is gone for good (counted in :attr:`dequeued`); use :meth:`take` when handling it may fail.
+
+        :param timeout: ``0`` returns at once, a positive number waits at most that long, ``None`` or ``math.inf``
+            waits forever; a negative or NaN timeout raises ``ValueError``.
         """
-        if timeout is not None and (not isinstance(timeout, Real) or math.isnan(timeout) or timeout < 0):
-            raise ValueError(f"timeout must be None or a number >= 0, got {timeout!r}")
         with self._cond:
-            if not self._items and timeout != 0:
-                self._cond.wait_for(lambda: bool(self._items), timeout=timeout)
-            if not self._items:
-                return None
+            entry = self._pop_ready(timeout)
+            if entry is not None:
+                self._dequeued += 1
+            return entry
+
+    def get_unacked(self, timeout: float | None = 0.0) -> QueuedInstruction | None:
+        """Take the oldest entry *in flight*: it stays the queue's until :meth:`ack` (done) or :meth:`nack` (put back).
+
+        Every entry returned must be settled with exactly one :meth:`ack` or :meth:`nack`; prefer :meth:`take`, which
+        does that for you.
+
+        :param timeout: as for :meth:`dequeue`.
+        :return: the entry, or ``None`` when none became ready within ``timeout``.
+        """
+        with self._cond:
+            entry = self._pop_ready(timeout)
+            if entry is not None:
+                self._in_flight[entry.sequence] = entry
+            return entry
+
+    def _settle(self, entry: QueuedInstruction) -> None:
+        """Under the lock: remove ``entry`` from the in-flight set, or raise ``ValueError`` if it is not there."""
+        if not isinstance(entry, QueuedInstruction) or self._in_flight.get(entry.sequence) is not entry:
+            raise ValueError(
+                f"{brief_repr(entry)} is not in flight on this queue (already acknowledged, put back, or never taken)"
+            )
+        del self._in_flight[entry.sequence]
+
+    def ack(self, entry: QueuedInstruction) -> None:
+        """Acknowledge an in-flight entry: it was handled and leaves the queue for good (counted in :attr:`dequeued`).
+
+        :param entry: the entry returned by :meth:`get_unacked`; ``ValueError`` if it is not in flight.
+        """
+        with self._cond:
+            self._settle(entry)
             self._dequeued += 1
-            return self._items.popleft()
+
+    def nack(self, entry: QueuedInstruction) -> None:
+        """Put an in-flight entry back at the head of the queue, keeping its sequence number and timestamp.
+
+        Entries put back keep their arrival order among themselves, and a waiting consumer is woken. This never evicts
+        and never raises :class:`QueueFullError`, even on a full queue.
+
+        :param entry: the entry returned by :meth:`get_unacked`; ``ValueError`` if it is not in flight.
+        """
+        with self._cond:
+            self._settle(entry)
+            self._requeue(entry)
+
+    def _requeue(self, entry: QueuedInstruction) -> None:
+        """Under the lock: insert ``entry`` among the ready entries in sequence order (normally at the head)."""
+        index = 0
+        while index < len(self._items) and self._items[index].sequence < entry.sequence:
+            index += 1
+        self._items.insert(index, entry)
+        self._requeued += 1
+        self._cond.notify()
+
+    @contextmanager
+    def take(self, timeout: float | None = 0.0) -> Iterator[QueuedInstruction | None]:
+        """Lend the oldest entry to a ``with`` block: acknowledged if the block completes, put back if it raises.
+
+        A failing consumer thus loses nothing: on any exception (``KeyboardInterrupt`` included) the entry is back at
+        the head of the queue (:meth:`nack`) before the exception propagates::
+
+            with queue.take(timeout=1.0) as entry:
+                if entry is not None:
+                    handle(entry.instruction)
+
+        The block may also settle the entry itself with :meth:`ack` or :meth:`nack`; the exit then does nothing.
+
+        :param timeout: as for :meth:`dequeue`; the block receives ``None`` when no entry became ready in time.
+        """
+        entry = self.get_unacked(timeout)
+        if entry is None:
+            yield None
+            return
+        try:
+            yield entry
+        except BaseException:
+            self._settle_if_in_flight(entry, requeue=True)
+            raise
+        self._settle_if_in_flight(entry, requeue=False)
+
+    def _settle_if_in_flight(self, entry: QueuedInstruction, requeue: bool) -> None:
+        with self._cond:
+            if self._in_flight.get(entry.sequence) is not entry:
+                return  # the block settled it already
+            self._settle(entry)
+            if requeue:
+                self._requeue(entry)
+            else:
+                self._dequeued += 1
+
+    def unacked(self) -> list[QueuedInstruction]:
+        """A copy of the in-flight entries, oldest first."""
+        with self._cond:
+            return sorted(self._in_flight.values(), key=lambda entry: entry.sequence)
 
     def peek(self) -> QueuedInstruction | None:
-        """The oldest entry without removing it, or ``None`` when the queue is empty."""
+        """The oldest ready entry without removing it, or ``None`` when none is ready."""
         with self._cond:
             return self._items[0] if self._items else None
 
     def snapshot(self) -> list[QueuedInstruction]:
-        """A copy of the current entries, oldest first; later queue changes do not affect it."""
+        """A copy of the ready entries, oldest first; later queue changes do not affect it."""
         with self._cond:
             return list(self._items)
 
     def clear(self) -> list[QueuedInstruction]:
-        """Remove every entry and return them, oldest first (counted in :attr:`cleared`, not :attr:`dequeued`)."""
+        """Remove every ready entry and return them, oldest first (counted in :attr:`cleared`); in-flight ones stay."""
         with self._cond:
             items = list(self._items)
             self._items.clear()
@@ -223,9 +380,10 @@ class InstructionQueue:
             return items
 
     def discard(self, predicate: Callable[[QueuedInstruction], bool]) -> list[QueuedInstruction]:
-        """Remove the entries for which ``predicate`` is true and return them; the others keep their place and stamps.
+        """Remove the ready entries for which ``predicate`` is true and return them, oldest first.
 
-        Removed entries are counted in :attr:`cleared`.
+        The other entries keep their place and stamps. Removed entries are counted in :attr:`cleared`; in-flight
+        entries are not considered.
 
         :param predicate: called on each entry, under the lock (keep it cheap and free of queue calls).
         """
@@ -238,23 +396,24 @@ class InstructionQueue:
 
     @property
     def holding(self) -> bool:
-        """Whether the controller must hold: ``True`` exactly when the queue is empty."""
+        """Whether the controller must hold: ``True`` exactly when no entry is ready (in-flight ones do not count)."""
         with self._cond:
             return not self._items
 
     def __len__(self) -> int:
-        """The number of queued entries (so an empty queue is falsy: test ``is None``, not truthiness)."""
+        """The number of ready entries (so an empty queue is falsy: test ``is None``, not truthiness)."""
         with self._cond:
             return len(self._items)
 
     def __iter__(self) -> Iterator[QueuedInstruction]:
-        """Iterate over a snapshot taken under the lock, oldest first."""
+        """Iterate over a snapshot of the ready entries taken under the lock, oldest first."""
         return iter(self.snapshot())
 
     def __repr__(self) -> str:
         return (
-            f"InstructionQueue(len={len(self)}, capacity={self._capacity}, overflow={self._overflow!r}, "
-            f"enqueued={self._enqueued}, dequeued={self._dequeued}, dropped={self._dropped})"
+            f"InstructionQueue(len={len(self)}, in_flight={self.in_flight}, capacity={self._capacity}, "
+            f"overflow={self._overflow!r}, enqueued={self._enqueued}, dequeued={self._dequeued}, "
+            f"dropped={self._dropped})"
         )
 
 
@@ -314,13 +473,16 @@ class ScheduledArrivals(ArrivalProcess):
     ``["2,3", "1"]`` for several. Everything is validated here: ``ValueError`` names the offending step.
 
     :param schedule: mapping from env step (>= 0) to instruction(s).
+    :param n_arms: when given, instructions naming a higher arm id are rejected here.
     """
 
     default_source = "schedule"
 
-    def __init__(self, schedule: Mapping[int, Any]) -> None:
+    def __init__(self, schedule: Mapping[int, Any], *, n_arms: int | None = None) -> None:
         if not isinstance(schedule, Mapping):
             raise ValueError(f"schedule must be a mapping step -> instruction(s), got {type(schedule).__name__}")
+        if n_arms is not None:
+            Instruction().check_arms(n_arms)  # validates n_arms itself
         parsed: dict[int, tuple[Instruction, ...]] = {}
         for key, value in schedule.items():
             try:
@@ -331,7 +493,7 @@ class ScheduledArrivals(ArrivalProcess):
             items = []
             for index, element in enumerate(values):
                 try:
-                    items.append(Instruction.coerce(element))
+                    items.append(Instruction.coerce(element, n_arms=n_arms))
                 except ValueError as error:
                     where = f"schedule step {step}" + ("" if len(values) == 1 else f", instruction {index}")
                     raise ValueError(f"{where}: {error}") from error
@@ -375,6 +537,7 @@ class PoissonArrivals(ArrivalProcess):
     :param burst_probability: per-step probability of a burst, in [0, 1].
     :param burst_size: inclusive ``(low, high)`` range of a burst's size, 1 <= low <= high.
     :param seed: the seed; ``None`` draws fresh entropy (still fixed until the next :meth:`reset`).
+    :param n_arms: when given, instructions (from the list or the sampler) naming a higher arm id are rejected.
     """
 
     default_source = "poisson"
@@ -387,6 +550,8 @@ class PoissonArrivals(ArrivalProcess):
         burst_probability: float = 0.0,
         burst_size: tuple[int, int] = (2, 5),
         seed: int | None = None,
+        *,
+        n_arms: int | None = None,
     ) -> None:
         if isinstance(rate, bool) or not isinstance(rate, Real) or not math.isfinite(rate) or rate < 0:
             raise ValueError(f"rate must be a finite number >= 0, got {rate!r}")
@@ -404,6 +569,8 @@ class PoissonArrivals(ArrivalProcess):
             raise ValueError(f"burst_size must be integers with 1 <= low <= high, got {burst_size!r}")
         if (sampler is None) == (instructions is None):
             raise ValueError("give exactly one of sampler (a callable) or instructions (a non-empty list)")
+        if n_arms is not None:
+            Instruction().check_arms(n_arms)  # validates n_arms itself
         if sampler is not None and not callable(sampler):
             raise ValueError(f"sampler must be callable, got {sampler!r}")
         pool: tuple[Instruction, ...] = ()
@@ -413,7 +580,7 @@ class PoissonArrivals(ArrivalProcess):
             pool_list = []
             for index, element in enumerate(instructions):
                 try:
-                    pool_list.append(Instruction.coerce(element))
+                    pool_list.append(Instruction.coerce(element, n_arms=n_arms))
                 except ValueError as error:
                     raise ValueError(f"instructions[{index}]: {error}") from error
             if not pool_list:
@@ -424,6 +591,7 @@ class PoissonArrivals(ArrivalProcess):
         self.burst_size = (int(low), int(high))
         self._sampler = sampler
         self._pool = pool
+        self._n_arms = n_arms
         self._entropy = 0
         self.reset(seed)
 
@@ -458,7 +626,7 @@ class PoissonArrivals(ArrivalProcess):
             if self._sampler is not None:
                 drawn = self._sampler(rng)
                 try:
-                    result.append(Instruction.coerce(drawn))
+                    result.append(Instruction.coerce(drawn, n_arms=self._n_arms))
                 except ValueError as error:
                     raise ValueError(f"step {step}: the sampler returned a malformed instruction: {error}") from error
             else:
