@@ -6,20 +6,26 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from gymnasium import spaces
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.save_util import recursive_getattr
 
 import vafn_gym  # noqa: F401  (registers the env IDs)
-from vafn_gym.constants import ACTION_DIM, NUM_ARMS, OBS_DIM, action_slice, obs_slice
 from vafn_sb3.common.adaptation import Adaptable, evaluate_adaptation, run_episode
-from vafn_sb3.common.agents import per_agent_sum, substitute_agent_actions
-from vafn_sb3.maac import MAAC
-from vafn_sb3.maddpg import MADDPG
-from vafn_sb3.mappo import MAPPO
+from vafn_sb3.common.agents import AgentLayout, SharedAgentSACPolicy, per_agent_sum, substitute_agent_actions
+from vafn_sb3.maac import MAAC, MAACPolicy
+from vafn_sb3.maddpg import MADDPG, MADDPGPolicy
+from vafn_sb3.mappo import MAPPO, MAPPOPolicy
 from vafn_sb3.mappo.policies import ValueNorm
 from vafn_sb3.mtsac import MTSAC
 
-ENV_ID = "VAFN/ThreeArmReach-v0"
+ENV_ID = "VAFN/ThreeArmReach-v1"
+#: The N-arm env (keyword ``n_arms``) of the tests that need rollouts for several numbers of agents.
+MULTI_ENV_ID = "VAFN/MultiArmReach-v1"
+#: Numbers of agents the network tests run with.
+N_AGENTS = (2, 3, 4, 6)
+#: Per-agent block sizes of the VAFN envs: [ee_pos(3), distance, phase] and an end-effector velocity.
+OBS_PER_AGENT, ACTION_PER_AGENT = 5, 3
 #: An easy fixed instruction: arm 1 reaches its default target while arms 2 and 3 hold still.
 EASY_INSTRUCTION = "1"
 SEED = 0
@@ -50,14 +56,31 @@ def make_env(instruction=EASY_INSTRUCTION):
     return gym.make(ENV_ID, instruction=instruction)
 
 
+def make_multi_env(n_agents):
+    return gym.make(MULTI_ENV_ID, n_arms=n_agents, instruction=EASY_INSTRUCTION)
+
+
+def joint_spaces(n_agents, obs_per_agent=OBS_PER_AGENT):
+    """The joint Box spaces of ``n_agents`` arms, without building an env."""
+    return (
+        spaces.Box(-1.0, 1.0, (n_agents * obs_per_agent,), np.float32),
+        spaces.Box(-1.0, 1.0, (n_agents * ACTION_PER_AGENT,), np.float32),
+    )
+
+
+def agent_block(i, per_agent):
+    return slice(i * per_agent, (i + 1) * per_agent)
+
+
 class UniformRandomPolicy:
     """The random baseline: uniform actions in [-1, 1], seeded."""
 
-    def __init__(self, seed):
+    def __init__(self, seed, action_dim):
         self.rng = np.random.default_rng(seed)
+        self.action_dim = action_dim
 
     def predict(self, observation, state=None, episode_start=None, deterministic=True):
-        return self.rng.uniform(-1.0, 1.0, ACTION_DIM).astype(np.float32), None
+        return self.rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32), None
 
 
 def mean_return(policy, env):
@@ -78,62 +101,118 @@ def trained(request):
 # --- structure -------------------------------------------------------------------------------------------------------
 
 
-def untrained_actor_means():
-    """Deterministic joint action as a differentiable function of one joint observation, for each decentralised actor."""
-    env = make_env()
-    mappo = MAPPO(env=env, n_steps=64, policy_kwargs=dict(net_arch=TINY), seed=SEED)
-    maddpg = MADDPG(env=env, policy_kwargs=dict(net_arch=TINY), seed=SEED)
-    maac = MAAC(env=env, policy_kwargs=dict(net_arch=dict(pi=TINY, qf=[32])), seed=SEED)
-    mtsac = MTSAC("SharedAgentPolicy", env=env, policy_kwargs=dict(net_arch=TINY), seed=SEED)
-    env.close()
+def lr_schedule(_):
+    return 1e-3
+
+
+def untrained_policies(n_agents, agent_ids=True):
+    """Each decentralised-actor policy, built on ``n_agents``' joint spaces."""
+    th.manual_seed(SEED)
+    observation_space, action_space = joint_spaces(n_agents)
+    kwargs = dict(agent_ids=agent_ids)
     return {
-        "MAPPO": lambda o: mappo.policy.get_distribution(o).distribution.mean,
-        "MADDPG": lambda o: maddpg.actor(o),
-        "MAAC mean": lambda o: maac.actor.get_action_dist_params(o)[0],
-        "MAAC log_std": lambda o: maac.actor.get_action_dist_params(o)[1],
-        "MTSAC shared": lambda o: mtsac.actor.get_action_dist_params(o)[0],
+        "MAPPO": MAPPOPolicy(observation_space, action_space, lr_schedule, net_arch=TINY, **kwargs),
+        "MADDPG": MADDPGPolicy(observation_space, action_space, lr_schedule, net_arch=TINY, **kwargs),
+        "MAAC": MAACPolicy(observation_space, action_space, lr_schedule, net_arch=dict(pi=TINY, qf=[32]), **kwargs),
+        "MTSAC shared": SharedAgentSACPolicy(observation_space, action_space, lr_schedule, net_arch=TINY, **kwargs),
     }
 
 
-def test_actions_have_zero_jacobian_wrt_other_agents_observations():
-    obs = th.rand(1, OBS_DIM)
-    for name, actor in untrained_actor_means().items():
-        jacobian = th.autograd.functional.jacobian(lambda o: actor(o)[0], obs)[:, 0, :]  # (ACTION_DIM, OBS_DIM)
-        for i in range(1, NUM_ARMS + 1):
-            for j in range(1, NUM_ARMS + 1):
-                block = jacobian[action_slice(i), obs_slice(j)]
+def actor_means(policies):
+    """Deterministic joint action as a differentiable function of joint observations, for each decentralised actor."""
+    return {
+        "MAPPO": lambda o: policies["MAPPO"].get_distribution(o).distribution.mean,
+        "MADDPG": lambda o: policies["MADDPG"].actor(o),
+        "MAAC mean": lambda o: policies["MAAC"].actor.get_action_dist_params(o)[0],
+        "MAAC log_std": lambda o: policies["MAAC"].actor.get_action_dist_params(o)[1],
+        "MTSAC shared": lambda o: policies["MTSAC shared"].actor.get_action_dist_params(o)[0],
+    }
+
+
+def actor_parameters(name, policy):
+    if name == "MAPPO":
+        return policy.actor_parameters()
+    return list(policy.actor.parameters())
+
+
+@pytest.mark.parametrize("agent_ids", [True, False])
+@pytest.mark.parametrize("n_agents", N_AGENTS)
+def test_actions_have_zero_jacobian_wrt_other_agents_observations(n_agents, agent_ids):
+    obs = th.rand(1, n_agents * OBS_PER_AGENT)
+    for name, actor in actor_means(untrained_policies(n_agents, agent_ids)).items():
+        jacobian = th.autograd.functional.jacobian(lambda o: actor(o)[0], obs)[:, 0, :]  # (action_dim, obs_dim)
+        assert jacobian.shape == (n_agents * ACTION_PER_AGENT, n_agents * OBS_PER_AGENT)
+        for i in range(n_agents):
+            for j in range(n_agents):
+                block = jacobian[agent_block(i, ACTION_PER_AGENT), agent_block(j, OBS_PER_AGENT)]
                 if i == j:
                     assert block.abs().sum() > 0, f"{name}: agent {i}'s action ignores its own observation"
                 else:
                     assert th.equal(block, th.zeros_like(block)), f"{name}: agent {i}'s action reads agent {j}'s obs"
 
 
+def test_actor_parameters_do_not_depend_on_the_number_of_agents_without_ids():
+    """Parameter sharing: with agent ids only the id inputs grow with N; without them the actor is the same size."""
+    for agent_ids in (True, False):
+        sizes = {
+            n: {name: sum(p.numel() for p in actor_parameters(name, policy))
+                for name, policy in untrained_policies(n, agent_ids).items()}
+            for n in N_AGENTS
+        }
+        for name in sizes[2]:
+            counts = [sizes[n][name] for n in N_AGENTS]
+            if agent_ids:  # one extra input weight per hidden unit of the first layer and per extra agent
+                assert len(set(counts)) == len(counts), f"{name}: {counts}"
+            else:
+                assert len(set(counts)) == 1, f"{name}: actor parameter counts {counts} depend on N"
+
+
+@pytest.mark.parametrize("name", ["MADDPG", "MAAC", "MTSAC shared"])
+def test_actor_without_ids_transfers_to_another_number_of_agents(name):
+    """A 3-agent actor's weights load into a 6-agent actor, which then acts on each agent's block exactly like it."""
+    small, large = untrained_policies(3, agent_ids=False)[name], untrained_policies(6, agent_ids=False)[name]
+    large.actor.load_state_dict(small.actor.state_dict())
+    obs = th.rand(4, 3 * OBS_PER_AGENT)
+
+    def mean_action(policy, o):
+        return policy.actor(o) if name == "MADDPG" else policy.actor.get_action_dist_params(o)[0]
+
+    th.testing.assert_close(mean_action(large, obs.repeat(1, 2)), mean_action(small, obs).repeat(1, 2))
+
+
+def test_agent_ids_are_checked_against_the_number_of_agents():
+    policy = untrained_policies(3)["MADDPG"]
+    with pytest.raises(ValueError, match="one-hot ids of 3 agents but got 6"):
+        policy.actor(th.rand(1, 6 * OBS_PER_AGENT))
+
+
 def test_actor_has_one_head_for_all_agents():
     """Parameter sharing: the output layer maps one agent's latent to one agent's action block."""
-    env = make_env()
-    model = MADDPG(env=env, policy_kwargs=dict(net_arch=TINY), seed=SEED)
-    env.close()
-    head = [m for m in model.actor.mu.modules() if isinstance(m, th.nn.Linear)][-1]
-    assert head.out_features == ACTION_DIM // NUM_ARMS  # one head for all agents, not one per agent
+    policy = untrained_policies(3)["MADDPG"]
+    head = [m for m in policy.actor.mu.modules() if isinstance(m, th.nn.Linear)][-1]
+    assert head.out_features == ACTION_PER_AGENT  # one head for all agents, not one per agent
 
 
-def test_substitution_routes_gradient_to_own_block_only():
-    own = th.randn(4, ACTION_DIM, requires_grad=True)
-    others = th.randn(4, ACTION_DIM, requires_grad=True)
-    joint = substitute_agent_actions(others, own).view(NUM_ARMS, 4, ACTION_DIM)
-    for i in range(1, NUM_ARMS + 1):
-        copy_i = joint[i - 1]
-        assert th.equal(copy_i[:, action_slice(i)], own[:, action_slice(i)])
+@pytest.mark.parametrize("n_agents", N_AGENTS)
+def test_substitution_routes_gradient_to_own_block_only(n_agents):
+    action_dim = n_agents * ACTION_PER_AGENT
+    own = th.randn(4, action_dim, requires_grad=True)
+    others = th.randn(4, action_dim, requires_grad=True)
+    joint = substitute_agent_actions(others, own, ACTION_PER_AGENT).view(n_agents, 4, action_dim)
+    for i in range(n_agents):
+        copy_i, block = joint[i], agent_block(i, ACTION_PER_AGENT)
+        assert th.equal(copy_i[:, block], own[:, block])
         grad = th.autograd.grad(copy_i.sum(), own, retain_graph=True)[0]
-        assert grad[:, action_slice(i)].eq(1).all() and grad.sum() == grad[:, action_slice(i)].sum()
-        rest = [d for d in range(ACTION_DIM) if d not in range(*action_slice(i).indices(ACTION_DIM))]
+        assert grad[:, block].eq(1).all() and grad.sum() == grad[:, block].sum()
+        rest = [d for d in range(action_dim) if d not in range(*block.indices(action_dim))]
         assert th.equal(copy_i[:, rest], others[:, rest])
     assert th.autograd.grad(joint.sum(), others, allow_unused=True)[0] is None  # other agents' actions are detached
 
 
-def test_maddpg_actor_loss_uses_buffered_actions_of_other_agents(monkeypatch):
+@pytest.mark.parametrize("n_agents", [2, 4])
+def test_maddpg_actor_loss_uses_buffered_actions_of_other_agents(monkeypatch, n_agents):
     """In agent i's actor term the critic sees mu_i(o_i) in block i and the *replay-buffer* actions elsewhere."""
-    env = make_env()
+    env = make_multi_env(n_agents)
     model = MADDPG(env=env, policy_kwargs=dict(net_arch=TINY), learning_starts=50, seed=SEED)
     model.learn(50)  # fills the buffer, no update yet
     env.close()
@@ -149,58 +228,58 @@ def test_maddpg_actor_loss_uses_buffered_actions_of_other_agents(monkeypatch):
     batch = 16
     model.set_logger(configure(folder=None, format_strings=[]))
     model.train(gradient_steps=1, batch_size=batch)
-    data, joint = seen["data"], seen["joint"].detach().view(NUM_ARMS, batch, ACTION_DIM)
-    for i in range(1, NUM_ARMS + 1):
-        for j in range(1, NUM_ARMS + 1):
+    data, joint = seen["data"], seen["joint"].detach().view(n_agents, batch, n_agents * ACTION_PER_AGENT)
+    for i in range(n_agents):
+        for j in range(n_agents):
             if j != i:
-                th.testing.assert_close(joint[i - 1][:, action_slice(j)], data.actions[:, action_slice(j)])
-    assert not th.allclose(joint[0][:, action_slice(1)], data.actions[:, action_slice(1)])
+                block = agent_block(j, ACTION_PER_AGENT)
+                th.testing.assert_close(joint[i][:, block], data.actions[:, block])
+    block = agent_block(0, ACTION_PER_AGENT)
+    assert not th.allclose(joint[0][:, block], data.actions[:, block])
 
 
-def test_squashed_per_agent_log_probs_sum_to_sb3_joint_log_prob():
-    env = make_env()
-    model = MAAC(env=env, policy_kwargs=dict(net_arch=dict(pi=TINY, qf=[32])), seed=SEED)
-    env.close()
-    obs = th.rand(16, OBS_DIM)
+@pytest.mark.parametrize("n_agents", N_AGENTS)
+def test_squashed_per_agent_log_probs_sum_to_sb3_joint_log_prob(n_agents):
+    actor = untrained_policies(n_agents)["MAAC"].actor
+    obs = th.rand(16, n_agents * OBS_PER_AGENT)
     th.manual_seed(1)
-    actions, agent_log_prob = model.actor.agent_action_log_prob(obs)
+    actions, agent_log_prob = actor.agent_action_log_prob(obs)
     th.manual_seed(1)
-    sb3_actions, sb3_log_prob = model.actor.action_log_prob(obs)
-    assert agent_log_prob.shape == (16, NUM_ARMS)
+    sb3_actions, sb3_log_prob = actor.action_log_prob(obs)
+    assert agent_log_prob.shape == (16, n_agents)
     th.testing.assert_close(actions, sb3_actions)
     th.testing.assert_close(agent_log_prob.sum(-1), sb3_log_prob, rtol=1e-4, atol=1e-4)
 
 
-def test_maac_critic_gives_one_q_per_agent_and_reads_only_own_action_directly():
-    env = make_env()
-    model = MAAC(env=env, policy_kwargs=dict(net_arch=dict(pi=TINY, qf=[32])), seed=SEED)
-    env.close()
-    obs, actions = th.rand(5, OBS_DIM), th.rand(5, ACTION_DIM)
-    q_values = model.critic(obs, actions)
-    assert len(q_values) == 2 and all(q.shape == (5, NUM_ARMS) for q in q_values)
-    q, logits = model.critic.forward_with_logits(obs, actions)[0]
-    assert logits.shape[-2:] == (NUM_ARMS, NUM_ARMS - 1)  # each agent attends over the others only
+@pytest.mark.parametrize("n_agents", N_AGENTS)
+def test_maac_critic_gives_one_q_per_agent_and_reads_only_own_action_directly(n_agents):
+    critic = untrained_policies(n_agents)["MAAC"].critic
+    obs, actions = th.rand(5, n_agents * OBS_PER_AGENT), th.rand(5, n_agents * ACTION_PER_AGENT)
+    q_values = critic(obs, actions)
+    assert len(q_values) == 2 and all(q.shape == (5, n_agents) for q in q_values)
+    q, logits = critic.forward_with_logits(obs, actions)[0]
+    assert logits.shape[-2:] == (n_agents, n_agents - 1)  # each agent attends over the others only
 
 
-def test_maac_own_action_q_equals_per_agent_substitution():
+@pytest.mark.parametrize("n_agents", N_AGENTS)
+def test_maac_own_action_q_equals_per_agent_substitution(n_agents):
     """The one-pass actor-loss Q_i (others detached) has the values and action gradients of N substituted copies."""
-    env = make_env()
-    model = MAAC(env=env, policy_kwargs=dict(net_arch=dict(pi=TINY, qf=[32])), seed=SEED)
-    env.close()
-    obs = th.rand(6, OBS_DIM)
-    actions = (th.rand(6, ACTION_DIM) * 2 - 1).requires_grad_(True)
-    own_q = model.critic.own_action_q(obs, actions)[0]
+    critic = untrained_policies(n_agents)["MAAC"].critic
+    obs = th.rand(6, n_agents * OBS_PER_AGENT)
+    actions = (th.rand(6, n_agents * ACTION_PER_AGENT) * 2 - 1).requires_grad_(True)
+    own_q = critic.own_action_q(obs, actions)[0]
     own_grad = th.autograd.grad(own_q.sum(), actions)[0]
-    copies = model.critic(obs.repeat(NUM_ARMS, 1), substitute_agent_actions(actions, actions))[0]
-    substituted = copies.view(NUM_ARMS, 6, NUM_ARMS).diagonal(dim1=0, dim2=2)  # Q_i from copy i
+    copies = critic(obs.repeat(n_agents, 1), substitute_agent_actions(actions, actions, ACTION_PER_AGENT))[0]
+    substituted = copies.view(n_agents, 6, n_agents).diagonal(dim1=0, dim2=2)  # Q_i from copy i
     substituted_grad = th.autograd.grad(substituted.sum(), actions)[0]
     th.testing.assert_close(own_q, substituted)
-    th.testing.assert_close(own_q, model.critic(obs, actions)[0])
+    th.testing.assert_close(own_q, critic(obs, actions)[0])
     th.testing.assert_close(own_grad, substituted_grad)
 
 
-def test_mappo_per_agent_ratios_start_at_one_and_sum_to_joint_log_prob():
-    env = make_env()
+@pytest.mark.parametrize("n_agents", [2, 4])
+def test_mappo_per_agent_ratios_start_at_one_and_sum_to_joint_log_prob(n_agents):
+    env = make_multi_env(n_agents)
     model = MAPPO(env=env, n_steps=64, policy_kwargs=dict(net_arch=TINY), seed=SEED)
     _, callback = model._setup_learn(64)
     model.collect_rollouts(model.env, callback, model.rollout_buffer, n_rollout_steps=64)
@@ -209,10 +288,11 @@ def test_mappo_per_agent_ratios_start_at_one_and_sum_to_joint_log_prob():
     data = next(model.rollout_buffer.get(model.batch_size))
     with th.no_grad():
         _, agent_log_prob, entropy = model.policy.evaluate_agent_actions(data.observations, data.actions)
-    assert agent_log_prob.shape == entropy.shape == (64, NUM_ARMS)
-    th.testing.assert_close(th.exp(agent_log_prob - data.old_agent_log_prob), th.ones(64, NUM_ARMS))
+    assert agent_log_prob.shape == entropy.shape == (64, n_agents)
+    th.testing.assert_close(th.exp(agent_log_prob - data.old_agent_log_prob), th.ones(64, n_agents))
     th.testing.assert_close(data.old_agent_log_prob.sum(-1), data.old_log_prob)  # SB3's stored joint log-prob
-    assert per_agent_sum(th.ones(1, ACTION_DIM)).tolist() == [[ACTION_DIM / NUM_ARMS] * NUM_ARMS]
+    ones = th.ones(1, n_agents * ACTION_PER_AGENT)
+    assert per_agent_sum(ones, ACTION_PER_AGENT).tolist() == [[float(ACTION_PER_AGENT)] * n_agents]
 
 
 def test_value_norm_matches_on_policy_statistics():
@@ -228,14 +308,51 @@ def test_value_norm_matches_on_policy_statistics():
     assert value_norm.mean_var()[1] > 0  # variance floored, never zero
 
 
-def test_spaces_without_the_per_agent_layout_are_rejected():
-    env = gym.make("VAFN/ThreeArmReachGoal-v0")
-    for make_model in (lambda: MAPPO(env=env, n_steps=64), lambda: MADDPG(env=env), lambda: MAAC(env=env)):
-        with pytest.raises(ValueError, match="joint observation"):
-            make_model()
+@pytest.mark.parametrize("n_agents", N_AGENTS)
+def test_layout_is_inferred_from_the_spaces(n_agents):
+    assert AgentLayout.from_spaces(*joint_spaces(n_agents)) == AgentLayout(n_agents, OBS_PER_AGENT, ACTION_PER_AGENT)
+    goal_visible = AgentLayout.from_spaces(*joint_spaces(n_agents, obs_per_agent=8))
+    assert goal_visible == AgentLayout(n_agents, 8, ACTION_PER_AGENT)
+    explicit = AgentLayout.from_spaces(*joint_spaces(n_agents), n_agents=n_agents, obs_per_agent=OBS_PER_AGENT)
+    assert explicit.obs_dim == n_agents * OBS_PER_AGENT and explicit.action_dim == n_agents * ACTION_PER_AGENT
+
+
+@pytest.mark.parametrize(
+    ("obs_dim", "action_dim", "kwargs"),
+    [
+        (16, 9, {}),  # 16 observation numbers do not split into 3 agents
+        (15, 10, {}),  # 10 action numbers are not blocks of 3
+        (15, 9, {"n_agents": 5}),  # 9 actions do not split into 5 agents
+        (15, 9, {"obs_per_agent": 8}),  # 3 agents x 8 != 15
+        (20, 12, {"action_per_agent": 2}),  # 6 agents, but 20 observation numbers do not split into 6
+    ],
+)
+def test_inconsistent_layouts_are_rejected_with_the_sizes(obs_dim, action_dim, kwargs):
+    observation_space = spaces.Box(-1.0, 1.0, (obs_dim,), np.float32)
+    action_space = spaces.Box(-1.0, 1.0, (action_dim,), np.float32)
+    with pytest.raises(ValueError, match=rf"\({obs_dim} numbers\).*\({action_dim} numbers\)"):
+        AgentLayout.from_spaces(observation_space, action_space, **kwargs)
+    for policy_class in (MAPPOPolicy, MADDPGPolicy, MAACPolicy, SharedAgentSACPolicy):
+        with pytest.raises(ValueError, match="do not split"):
+            policy_class(observation_space, action_space, lr_schedule, **kwargs)
+
+
+def test_algorithms_read_the_layout_from_policy_kwargs():
+    env = make_env()
+    for make_model in (
+        lambda kwargs: MAPPO(env=env, n_steps=64, policy_kwargs=kwargs),
+        lambda kwargs: MADDPG(env=env, policy_kwargs=kwargs),
+        lambda kwargs: MAAC(env=env, policy_kwargs=kwargs),
+        lambda kwargs: MTSAC("SharedAgentPolicy", env=env, policy_kwargs=kwargs),
+    ):
+        assert make_model(dict(n_agents=3)).policy.agent_layout == AgentLayout(3, OBS_PER_AGENT, ACTION_PER_AGENT)
+        with pytest.raises(ValueError, match="into 4 agents"):
+            make_model(dict(n_agents=4))
     env.close()
     with pytest.raises(ValueError, match="num_mini_batch"):
         MAPPO(env=make_env(), batch_size=64, num_mini_batch=4)
+    with pytest.raises(ValueError, match="at least 2 agents"):
+        MAACPolicy(*joint_spaces(1), lr_schedule)
 
 
 # --- learning, save/load, adaptation (one training run per algorithm) ------------------------------------------------
@@ -244,7 +361,7 @@ def test_spaces_without_the_per_agent_layout_are_rejected():
 def test_short_run_beats_random_policy(trained):
     name, model, env = trained
     learned = mean_return(model, env)
-    random = mean_return(UniformRandomPolicy(SEED), env)
+    random = mean_return(UniformRandomPolicy(SEED, env.action_space.shape[0]), env)
     assert learned > random, f"{name}: deterministic return {learned:.2f} does not beat random {random:.2f}"
 
 
@@ -254,7 +371,7 @@ def test_save_load_predict(trained, tmp_path):
     loaded = type(model).load(tmp_path / name, env=env)
     obs = np.stack([env.reset(seed=seed)[0] for seed in EVAL_SEEDS])
     np.testing.assert_allclose(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
-    assert loaded.predict(obs[0], deterministic=False)[0].shape == (ACTION_DIM,)
+    assert loaded.predict(obs[0], deterministic=False)[0].shape == env.action_space.shape
 
 
 def test_adapt_fine_tunes_a_copy_and_leaves_the_model_unchanged(trained):
@@ -283,7 +400,7 @@ def test_adapt_fine_tunes_a_copy_and_leaves_the_model_unchanged(trained):
     for key, value in adapted.state_dict().items():
         th.testing.assert_close(value, again.state_dict()[key], msg=f"{name}: adapt is not reproducible from its seed")
     obs = env.reset(seed=0)[0]
-    assert adapted.predict(obs, deterministic=True)[0].shape == (ACTION_DIM,)
+    assert adapted.predict(obs, deterministic=True)[0].shape == env.action_space.shape
 
 
 def test_sgd_fine_tuning_variant_swaps_optimisers_only_during_adapt(trained, monkeypatch):

@@ -1,17 +1,21 @@
-"""Parameter-sharing building blocks for the MARL baselines: the 3 agents live inside one 15-D / 9-D gymnasium env.
+"""Parameter-sharing building blocks for the MARL baselines: N agents live inside one flat gymnasium env.
 
-The joint observation is ``NUM_ARMS`` local blocks of ``OBS_PER_ARM`` numbers (``vafn_gym.constants.obs_slice``) and the
-joint action is ``NUM_ARMS`` blocks of ``ACTION_PER_ARM`` numbers. A *decentralised* actor reshapes ``(B, OBS_DIM)`` to
-``(B, NUM_ARMS, OBS_PER_ARM)``, appends a one-hot agent id, runs one shared MLP on every agent independently and maps each
-agent's latent to that agent's action block with one shared head. Agent ``i``'s action therefore depends on agent ``i``'s
-local observation only (the Jacobian block ``d a_i / d o_j`` is exactly zero for ``j != i``; ``tests/test_baselines.py``
-checks it), and the number of parameters does not grow with the number of agents. This is the parameter sharing with
-agent ids used by ``marlbenchmark/on-policy`` (``share_policy=True``) and ``oxwhirl/facmac`` (``agent_id`` inputs).
+The joint observation is ``N`` equal local blocks of ``obs_per_agent`` numbers and the joint action ``N`` blocks of
+``action_per_agent`` numbers; :class:`AgentLayout` reads ``N`` and the block sizes from the spaces (or from explicit
+``policy_kwargs``), so nothing here knows the number of arms. A *decentralised* actor reshapes ``(B, N * obs_per_agent)``
+to ``(B, N, obs_per_agent)``, optionally appends a one-hot agent id, runs one shared MLP on every agent independently and
+maps each agent's latent to that agent's action block with one shared head. Agent ``i``'s action therefore depends on
+agent ``i``'s local observation only (the Jacobian block ``d a_i / d o_j`` is exactly zero for ``j != i``;
+``tests/test_baselines.py`` checks it), and the number of parameters does not grow with the number of agents. With
+agent ids (the default) this is the parameter sharing of ``marlbenchmark/on-policy`` (``share_policy=True``) and
+``oxwhirl/facmac`` (``agent_id`` inputs); without them (``agent_ids=False``) the actor's parameters do not depend on
+``N`` at all, so a trained actor runs on a layout with a different number of arms.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import torch as th
@@ -22,73 +26,126 @@ from stable_baselines3.sac.policies import SACPolicy
 from stable_baselines3.td3.policies import Actor as TD3Actor
 from torch import nn
 
-from vafn_gym.constants import ACTION_DIM, ACTION_PER_ARM, NUM_ARMS, OBS_DIM, OBS_PER_ARM
-
 #: Numerical guard of the tanh log-det correction; the same constant as SB3's ``TanhBijector.log_prob_correction``.
 TANH_EPS = 1e-6
+#: Action numbers per agent when neither ``action_per_agent`` nor ``n_agents`` is given (an end-effector velocity).
+DEFAULT_ACTION_PER_AGENT = 3
 
 
-def check_joint_spaces(observation_space: spaces.Space, action_space: spaces.Space) -> None:
-    """Raise a clear error unless the spaces are the 15-D joint observation and 9-D joint action of the VAFN envs.
+@dataclass(frozen=True)
+class AgentLayout:
+    """How a flat joint observation and joint action split into ``n_agents`` equal per-agent blocks.
 
-    :param observation_space: the env's observation space.
-    :param action_space: the env's action space.
+    :param n_agents: number of agents ``N``.
+    :param obs_per_agent: observation numbers per agent.
+    :param action_per_agent: action numbers per agent.
     """
-    if not isinstance(observation_space, spaces.Box) or observation_space.shape != (OBS_DIM,):
-        raise ValueError(
-            f"per-agent policies need the {OBS_DIM}-D joint observation ({NUM_ARMS} agents x {OBS_PER_ARM}), "
-            f"got {observation_space}; the goal-visible env (18-D) has no per-agent layout"
-        )
-    if not isinstance(action_space, spaces.Box) or action_space.shape != (ACTION_DIM,):
-        raise ValueError(
-            f"per-agent policies need the {ACTION_DIM}-D joint action ({NUM_ARMS} agents x {ACTION_PER_ARM}), "
-            f"got {action_space}"
-        )
+
+    n_agents: int
+    obs_per_agent: int
+    action_per_agent: int
+
+    @property
+    def obs_dim(self) -> int:
+        """Size of the joint observation."""
+        return self.n_agents * self.obs_per_agent
+
+    @property
+    def action_dim(self) -> int:
+        """Size of the joint action."""
+        return self.n_agents * self.action_per_agent
+
+    @classmethod
+    def from_spaces(
+        cls,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        n_agents: int | None = None,
+        obs_per_agent: int | None = None,
+        action_per_agent: int | None = None,
+    ) -> AgentLayout:
+        """The layout of flat Box spaces; missing sizes are inferred, given ones checked (``ValueError`` if inconsistent).
+
+        ``n_agents`` defaults to ``action_dim // action_per_agent`` (``action_per_agent`` defaults to
+        :data:`DEFAULT_ACTION_PER_AGENT`, or to ``action_dim // n_agents`` when ``n_agents`` is given) and
+        ``obs_per_agent`` to ``obs_dim // n_agents``.
+
+        :param observation_space: the env's joint observation space.
+        :param action_space: the env's joint action space.
+        :param n_agents: number of agents, inferred when None.
+        :param obs_per_agent: observation numbers per agent, inferred when None.
+        :param action_per_agent: action numbers per agent, inferred when None.
+        """
+        for name, space in (("observation", observation_space), ("action", action_space)):
+            if not isinstance(space, spaces.Box) or len(space.shape) != 1:
+                raise ValueError(f"per-agent policies need a flat Box joint {name} space, got {space}")
+        obs_dim, action_dim = observation_space.shape[0], action_space.shape[0]
+        for name, value in (("n_agents", n_agents), ("obs_per_agent", obs_per_agent),
+                            ("action_per_agent", action_per_agent)):
+            if value is not None and (not isinstance(value, int) or value < 1):
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if action_per_agent is None:
+            action_per_agent = DEFAULT_ACTION_PER_AGENT if n_agents is None else max(action_dim // n_agents, 1)
+        if n_agents is None:
+            n_agents = max(action_dim // action_per_agent, 1)
+        if obs_per_agent is None:
+            obs_per_agent = max(obs_dim // n_agents, 1)
+        layout = cls(n_agents, obs_per_agent, action_per_agent)
+        if layout.obs_dim != obs_dim or layout.action_dim != action_dim:
+            raise ValueError(
+                f"the joint observation ({obs_dim} numbers) and joint action ({action_dim} numbers) do not split into "
+                f"{n_agents} agents x {obs_per_agent} observation numbers and {n_agents} agents x {action_per_agent} "
+                "action numbers; pass n_agents / obs_per_agent / action_per_agent in policy_kwargs"
+            )
+        return layout
 
 
 def split_agents(joint: th.Tensor, per_agent: int) -> th.Tensor:
-    """Reshape a joint tensor ``(B, NUM_ARMS * per_agent)`` to ``(B, NUM_ARMS, per_agent)``.
+    """Reshape a joint tensor ``(B, N * per_agent)`` to ``(B, N, per_agent)``.
 
     :param joint: joint observations or actions.
-    :param per_agent: size of one agent's block (``OBS_PER_ARM`` or ``ACTION_PER_ARM``).
+    :param per_agent: size of one agent's block.
     """
-    if joint.shape[-1] != NUM_ARMS * per_agent:
-        raise ValueError(f"expected last dimension {NUM_ARMS * per_agent}, got shape {tuple(joint.shape)}")
-    return joint.reshape(*joint.shape[:-1], NUM_ARMS, per_agent)
+    if joint.shape[-1] % per_agent != 0:
+        raise ValueError(f"last dimension of shape {tuple(joint.shape)} is not a multiple of {per_agent}")
+    return joint.reshape(*joint.shape[:-1], joint.shape[-1] // per_agent, per_agent)
 
 
 def merge_agents(per_agent: th.Tensor) -> th.Tensor:
-    """Inverse of :func:`split_agents`: ``(B, NUM_ARMS, d)`` to ``(B, NUM_ARMS * d)``."""
+    """Inverse of :func:`split_agents`: ``(B, N, d)`` to ``(B, N * d)``."""
     return per_agent.flatten(-2)
 
 
-def per_agent_sum(joint: th.Tensor) -> th.Tensor:
-    """Sum a per-action-dimension quantity ``(B, ACTION_DIM)`` within each agent's block, giving ``(B, NUM_ARMS)``."""
-    return split_agents(joint, ACTION_PER_ARM).sum(-1)
+def per_agent_sum(joint: th.Tensor, per_agent: int) -> th.Tensor:
+    """Sum a per-action-dimension quantity ``(B, N * per_agent)`` within each agent's block, giving ``(B, N)``."""
+    return split_agents(joint, per_agent).sum(-1)
 
 
 def with_agent_ids(local: th.Tensor) -> th.Tensor:
-    """Append a one-hot agent id to per-agent inputs: ``(B, NUM_ARMS, d)`` to ``(B, NUM_ARMS, d + NUM_ARMS)``."""
-    ids = th.eye(NUM_ARMS, dtype=local.dtype, device=local.device).expand(*local.shape[:-1], NUM_ARMS)
+    """Append a one-hot agent id to per-agent inputs: ``(B, N, d)`` to ``(B, N, d + N)``."""
+    n_agents = local.shape[-2]
+    ids = th.eye(n_agents, dtype=local.dtype, device=local.device).expand(*local.shape[:-1], n_agents)
     return th.cat([local, ids], dim=-1)
 
 
-def substitute_agent_actions(others: th.Tensor, own: th.Tensor) -> th.Tensor:
+def substitute_agent_actions(others: th.Tensor, own: th.Tensor, action_per_agent: int) -> th.Tensor:
     """Joint actions for the per-agent actor losses: copy ``i`` takes agent ``i``'s block from ``own``, the rest from ``others``.
 
     Gradients flow through ``own``'s block ``i`` in copy ``i`` only; ``others`` is detached. This is the substitution of
     ``oxwhirl/facmac:src/learners/maddpg_learner.py`` (``tem_joint_act[:, idx] = agent_outs[:, idx]``) and of
     ``openai/maddpg:maddpg/trainer/maddpg.py`` (``act_input_n[p_index] = act_pd.sample()``).
 
-    :param others: ``(B, ACTION_DIM)`` actions of the other agents (e.g. from the replay buffer).
-    :param own: ``(B, ACTION_DIM)`` actions of the current policy.
-    :return: ``(NUM_ARMS * B, ACTION_DIM)``, agent-major (rows ``i*B : (i+1)*B`` are copy ``i``).
+    :param others: ``(B, N * action_per_agent)`` actions of the other agents (e.g. from the replay buffer).
+    :param own: ``(B, N * action_per_agent)`` actions of the current policy.
+    :param action_per_agent: action numbers per agent.
+    :return: ``(N * B, N * action_per_agent)``, agent-major (rows ``i*B : (i+1)*B`` are copy ``i``).
     """
-    batch = own.shape[0]
+    batch, action_dim = own.shape
+    n_agents = split_agents(own, action_per_agent).shape[-2]
     # mask[i, 0, d] = 1 where action dimension d belongs to agent i
-    mask = th.eye(NUM_ARMS, dtype=own.dtype, device=own.device).repeat_interleave(ACTION_PER_ARM, 1).unsqueeze(1)
+    mask = th.eye(n_agents, dtype=own.dtype, device=own.device).repeat_interleave(action_per_agent, 1).unsqueeze(1)
     joint = mask * own.unsqueeze(0) + (1.0 - mask) * others.detach().unsqueeze(0)
-    return joint.reshape(NUM_ARMS * batch, ACTION_DIM)
+    return joint.reshape(n_agents * batch, action_dim)
 
 
 def mlp_layers(
@@ -113,55 +170,76 @@ def mlp_layers(
 
 
 class SharedAgentMLP(nn.Module):
-    """One MLP applied to every agent's (local observation, one-hot id): ``(B, OBS_DIM)`` to ``(B, NUM_ARMS, h)``.
+    """One MLP applied to every agent's local observation (plus its one-hot id): ``(B, N * d)`` to ``(B, N, h)``.
 
+    :param obs_per_agent: observation numbers per agent ``d``.
     :param net_arch: hidden layer widths (``h`` is the last one).
     :param activation_fn: activation class.
     :param layer_norm: on-policy-style LayerNorms (see :func:`mlp_layers`).
+    :param n_agent_ids: number of agents whose one-hot id is appended to every agent's input; 0 appends none, and then
+        the parameters do not depend on the number of agents.
     """
 
-    def __init__(self, net_arch: list[int], activation_fn: type[nn.Module] = nn.ReLU, layer_norm: bool = False) -> None:
+    def __init__(
+        self,
+        obs_per_agent: int,
+        net_arch: list[int],
+        activation_fn: type[nn.Module] = nn.ReLU,
+        layer_norm: bool = False,
+        n_agent_ids: int = 0,
+    ) -> None:
         super().__init__()
         if not net_arch:
             raise ValueError("a shared agent MLP needs at least one hidden layer")
-        self.net, self.latent_dim = mlp_layers(OBS_PER_ARM + NUM_ARMS, net_arch, activation_fn, layer_norm)
+        self.obs_per_agent = obs_per_agent
+        self.n_agent_ids = n_agent_ids
+        self.net, self.latent_dim = mlp_layers(obs_per_agent + n_agent_ids, net_arch, activation_fn, layer_norm)
 
     def forward(self, obs: th.Tensor) -> th.Tensor:
-        """Per-agent latents ``(B, NUM_ARMS, h)`` of joint observations ``(B, OBS_DIM)``."""
-        return self.net(with_agent_ids(split_agents(obs, OBS_PER_ARM)))
+        """Per-agent latents ``(B, N, h)`` of joint observations ``(B, N * d)``."""
+        local = split_agents(obs, self.obs_per_agent)
+        if self.n_agent_ids:
+            if local.shape[-2] != self.n_agent_ids:
+                raise ValueError(
+                    f"this actor appends one-hot ids of {self.n_agent_ids} agents but got {local.shape[-2]} agents; "
+                    "build it with agent_ids=False to run it on another number of agents"
+                )
+            local = with_agent_ids(local)
+        return self.net(local)
 
 
 class AgentHead(nn.Module):
-    """One linear head shared by all agents: latents ``(B, NUM_ARMS, h)`` to a joint vector ``(B, NUM_ARMS * out)``.
+    """One linear head shared by all agents: latents ``(B, N, h)`` to a joint vector ``(B, N * out)``.
 
     :param latent_dim: per-agent latent width ``h``.
     :param out_per_agent: output width per agent.
     """
 
-    def __init__(self, latent_dim: int, out_per_agent: int = ACTION_PER_ARM) -> None:
+    def __init__(self, latent_dim: int, out_per_agent: int) -> None:
         super().__init__()
         self.linear = nn.Linear(latent_dim, out_per_agent)
 
     def forward(self, latent: th.Tensor) -> th.Tensor:
-        """Joint output ``(B, NUM_ARMS * out)`` from per-agent latents ``(B, NUM_ARMS, h)``."""
+        """Joint output ``(B, N * out)`` from per-agent latents ``(B, N, h)``."""
         return merge_agents(self.linear(latent))
 
 
 class AgentwiseLinear(nn.Module):
-    """A linear layer with separate weights per agent: ``(B, NUM_ARMS, d_in)`` to ``(B, NUM_ARMS, d_out)``.
+    """A linear layer with separate weights per agent: ``(B, N, d_in)`` to ``(B, N, d_out)``.
 
-    Equivalent to ``NUM_ARMS`` independent ``nn.Linear`` modules (MAAC's per-agent ``nn.ModuleList`` encoders and
-    critic heads) computed in one batched einsum, initialised like ``nn.Linear``.
+    Equivalent to ``N`` independent ``nn.Linear`` modules (MAAC's per-agent ``nn.ModuleList`` encoders and critic heads)
+    computed in one batched einsum, initialised like ``nn.Linear``.
 
+    :param n_agents: number of agents ``N``.
     :param in_features: input width per agent.
     :param out_features: output width per agent.
     """
 
-    def __init__(self, in_features: int, out_features: int) -> None:
+    def __init__(self, n_agents: int, in_features: int, out_features: int) -> None:
         super().__init__()
         bound = 1.0 / math.sqrt(in_features)
-        self.weight = nn.Parameter(th.empty(NUM_ARMS, in_features, out_features).uniform_(-bound, bound))
-        self.bias = nn.Parameter(th.empty(NUM_ARMS, out_features).uniform_(-bound, bound))
+        self.weight = nn.Parameter(th.empty(n_agents, in_features, out_features).uniform_(-bound, bound))
+        self.bias = nn.Parameter(th.empty(n_agents, out_features).uniform_(-bound, bound))
 
     def forward(self, x: th.Tensor) -> th.Tensor:
         """Apply agent ``i``'s weights to ``x[:, i]``."""
@@ -178,24 +256,41 @@ def _require_flat_features(features_extractor: nn.Module, use_sde: bool = False)
         raise ValueError("gSDE exploration is not supported by the per-agent actors (its noise matrix mixes agents)")
 
 
-class SquashedAgentActor(SACActor):
-    """Decentralised, parameter-shared SAC actor: each agent's tanh-Gaussian depends on its own local obs + id only.
+class _SharedAgentActorMixin:
+    """Builds the per-agent layout and the shared MLP of a decentralised actor after SB3's actor constructor."""
+
+    observation_space: spaces.Box
+    action_space: spaces.Box
+    net_arch: list[int]
+    activation_fn: type[nn.Module]
+
+    def _build_agent_mlp(self, layout: AgentLayout | None, agent_ids: bool) -> SharedAgentMLP:
+        self.layout = layout or AgentLayout.from_spaces(self.observation_space, self.action_space)
+        self.agent_ids = agent_ids
+        n_agent_ids = self.layout.n_agents if agent_ids else 0
+        return SharedAgentMLP(self.layout.obs_per_agent, self.net_arch, self.activation_fn, n_agent_ids=n_agent_ids)
+
+
+class SquashedAgentActor(_SharedAgentActorMixin, SACActor):
+    """Decentralised, parameter-shared SAC actor: each agent's tanh-Gaussian depends on its own local obs (+ id) only.
 
     Built by SB3's ``Actor`` constructor, then ``latent_pi``/``mu``/``log_std`` are replaced by the shared per-agent
-    network, so SB3's ``forward``, ``action_log_prob``, SAC training and save/load work unchanged. Constructor
-    parameters are SB3's ``sac.policies.Actor``'s.
+    network, so SB3's ``forward``, ``action_log_prob``, SAC training and save/load work unchanged. Positional and other
+    keyword parameters are SB3's ``sac.policies.Actor``'s, plus:
+
+    :param layout: the per-agent layout (inferred from the spaces when None).
+    :param agent_ids: append a one-hot agent id to every agent's input.
     """
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, layout: AgentLayout | None = None, agent_ids: bool = True, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         _require_flat_features(self.features_extractor, self.use_sde)
-        check_joint_spaces(self.observation_space, self.action_space)
-        self.latent_pi = SharedAgentMLP(self.net_arch, self.activation_fn)
-        self.mu = AgentHead(self.latent_pi.latent_dim)
-        self.log_std = AgentHead(self.latent_pi.latent_dim)  # type: ignore[assignment]
+        self.latent_pi = self._build_agent_mlp(layout, agent_ids)
+        self.mu = AgentHead(self.latent_pi.latent_dim, self.layout.action_per_agent)
+        self.log_std = AgentHead(self.latent_pi.latent_dim, self.layout.action_per_agent)  # type: ignore[assignment]
 
     def agent_action_log_prob(self, obs: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        """Reparameterised joint actions ``(B, ACTION_DIM)`` and each agent's own log-probability ``(B, NUM_ARMS)``.
+        """Reparameterised joint actions ``(B, N * action_per_agent)`` and each agent's own log-probability ``(B, N)``.
 
         SB3's squashed Gaussian returns only the joint log-probability; this applies the same tanh correction per
         agent block, so ``log_prob.sum(-1)`` equals SB3's ``action_log_prob``.
@@ -205,27 +300,75 @@ class SquashedAgentActor(SACActor):
         gaussian_actions = distribution.rsample()
         actions = th.tanh(gaussian_actions)
         log_prob = distribution.log_prob(gaussian_actions) - th.log(1.0 - actions**2 + TANH_EPS)
-        return actions, per_agent_sum(log_prob)
+        return actions, per_agent_sum(log_prob, self.layout.action_per_agent)
 
 
-class DeterministicAgentActor(TD3Actor):
-    """Decentralised, parameter-shared deterministic actor (MADDPG): ``a_i = tanh(head(mlp(o_i, id_i)))``.
+class DeterministicAgentActor(_SharedAgentActorMixin, TD3Actor):
+    """Decentralised, parameter-shared deterministic actor (MADDPG): ``a_i = tanh(head(mlp(o_i[, id_i])))``.
 
-    Constructor parameters are SB3's ``td3.policies.Actor``'s.
+    Positional and other keyword parameters are SB3's ``td3.policies.Actor``'s, plus:
+
+    :param layout: the per-agent layout (inferred from the spaces when None).
+    :param agent_ids: append a one-hot agent id to every agent's input.
     """
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, layout: AgentLayout | None = None, agent_ids: bool = True, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         _require_flat_features(self.features_extractor)
-        check_joint_spaces(self.observation_space, self.action_space)
-        latent = SharedAgentMLP(self.net_arch, self.activation_fn)
-        self.mu = nn.Sequential(latent, AgentHead(latent.latent_dim), nn.Tanh())
+        latent = self._build_agent_mlp(layout, agent_ids)
+        self.mu = nn.Sequential(latent, AgentHead(latent.latent_dim, self.layout.action_per_agent), nn.Tanh())
 
 
-class SharedAgentSACPolicy(SACPolicy):
+class AgentLayoutPolicyMixin:
+    """Policy mixin taking the per-agent ``policy_kwargs`` and resolving them against the spaces before the build.
+
+    Put it before the SB3 policy class in the bases. Positional and other keyword parameters are the SB3 policy's, plus:
+
+    :param n_agents: number of agents (default: ``action_dim // action_per_agent``).
+    :param obs_per_agent: observation numbers per agent (default: ``obs_dim // n_agents``).
+    :param action_per_agent: action numbers per agent (default: 3, or ``action_dim // n_agents`` if ``n_agents`` is given).
+    :param agent_ids: append a one-hot agent id to the shared actor's input; False makes the actor's parameters
+        independent of the number of agents.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        *args: Any,
+        n_agents: int | None = None,
+        obs_per_agent: int | None = None,
+        action_per_agent: int | None = None,
+        agent_ids: bool = True,
+        **kwargs: Any,
+    ) -> None:
+        # Set before the SB3 constructor, whose _build creates the actor from them.
+        self.agent_layout = AgentLayout.from_spaces(
+            observation_space, action_space, n_agents, obs_per_agent, action_per_agent
+        )
+        self.agent_ids = bool(agent_ids)
+        super().__init__(observation_space, action_space, *args, **kwargs)  # type: ignore[call-arg]
+
+    @property
+    def n_agent_ids(self) -> int:
+        """Width of the one-hot agent id appended to each agent's input (0 without ids)."""
+        return self.agent_layout.n_agents if self.agent_ids else 0
+
+    def _agent_actor_kwargs(self, actor_kwargs: dict[str, Any]) -> dict[str, Any]:
+        return {**actor_kwargs, "layout": self.agent_layout, "agent_ids": self.agent_ids}
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()  # type: ignore[misc]
+        layout = self.agent_layout
+        data.update(n_agents=layout.n_agents, obs_per_agent=layout.obs_per_agent,
+                    action_per_agent=layout.action_per_agent, agent_ids=self.agent_ids)
+        return data
+
+
+class SharedAgentSACPolicy(AgentLayoutPolicyMixin, SACPolicy):
     """SB3 ``SACPolicy`` whose actor is the decentralised :class:`SquashedAgentActor`; the critic stays SB3's.
 
-    Constructor parameters are SB3's ``SACPolicy``'s.
+    Parameters are SB3's ``SACPolicy``'s plus the per-agent keywords of :class:`AgentLayoutPolicyMixin`.
     """
 
     actor: SquashedAgentActor
@@ -233,8 +376,7 @@ class SharedAgentSACPolicy(SACPolicy):
     def make_actor(self, features_extractor: nn.Module | None = None) -> SquashedAgentActor:
         """Build the shared per-agent actor."""
         actor_kwargs = self._update_features_extractor(self.actor_kwargs, features_extractor)
-        return SquashedAgentActor(**actor_kwargs).to(self.device)
-
+        return SquashedAgentActor(**self._agent_actor_kwargs(actor_kwargs)).to(self.device)
 
 
 def clipped_step(loss: th.Tensor, optimizer: th.optim.Optimizer, parameters: list[nn.Parameter], max_norm: float) -> None:

@@ -12,9 +12,9 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import MaybeCallback
 from stable_baselines3.common.utils import polyak_update
 
-from vafn_gym.constants import NUM_ARMS
 from vafn_sb3.common.agents import clipped_step
 from vafn_sb3.common.finetune import FineTuneAdaptation
+from vafn_sb3.common.serialization import AtomicSaveMixin
 from vafn_sb3.maac.policies import AttentionCritic, MAACPolicy
 
 SelfMAAC = TypeVar("SelfMAAC", bound="MAAC")
@@ -22,12 +22,12 @@ SelfMAAC = TypeVar("SelfMAAC", bound="MAAC")
 #: ``shariqiqbal2810/MAAC:utils/critics.py``: ``attend_mag_reg = 1e-3 * sum((logit**2).mean() ...)``.
 ATTENTION_REG = 1e-3
 #: ``algorithms/attention_sac.py``: ``clip_grad_norm(self.critic.parameters(), 10 * self.nagents)``.
-CRITIC_MAX_GRAD_NORM = 10.0 * NUM_ARMS
+CRITIC_MAX_GRAD_NORM_PER_AGENT = 10.0
 #: ``algorithms/attention_sac.py``: ``clip_grad_norm(curr_agent.policy.parameters(), 0.5)``.
 ACTOR_MAX_GRAD_NORM = 0.5
 
 
-class MAAC(FineTuneAdaptation, SAC):
+class MAAC(AtomicSaveMixin, FineTuneAdaptation, SAC):
     """Multi-Actor-Attention-Critic with per-agent soft Q-values ``Q_i(o, a)`` from an attention critic.
 
     What follows ``shariqiqbal2810/MAAC:algorithms/attention_sac.py`` (``update_critic`` / ``update_policies``):
@@ -43,13 +43,15 @@ class MAAC(FineTuneAdaptation, SAC):
       gradient replaces its discrete counterfactual baseline, which it does not need); actor gradients clipped at 0.5.
 
     MAAC's ``reward_scale=100`` is a fixed temperature ``alpha = 0.01`` (``ent_coef=0.01``); SB3's automatic
-    temperature (``ent_coef="auto"``, target entropy ``-ACTION_DIM``, i.e. ``-ACTION_PER_ARM`` per agent) is also
-    available. The decentralised actors share parameters across agents (local obs + one-hot id).
+    temperature (``ent_coef="auto"``, target entropy minus the joint action size, i.e. minus ``action_per_agent`` per
+    agent) is also available. The decentralised actors share parameters across agents (local obs + one-hot id, or
+    local obs only with ``policy_kwargs=dict(agent_ids=False)``); the number of agents comes from the spaces (see
+    :class:`~vafn_sb3.common.agents.AgentLayout`).
 
     Parameters are SB3's ``SAC``'s, plus:
 
     :param attention_reg: weight of the attention-logit L2 penalty.
-    :param critic_max_grad_norm: gradient-norm clip of the critic.
+    :param critic_max_grad_norm: gradient-norm clip of the critic (None: MAAC's ``10 * n_agents``).
     :param actor_max_grad_norm: gradient-norm clip of the actor.
     """
 
@@ -63,11 +65,12 @@ class MAAC(FineTuneAdaptation, SAC):
         policy: str | type[MAACPolicy] = "MlpPolicy",
         env: Any = None,
         attention_reg: float = ATTENTION_REG,
-        critic_max_grad_norm: float = CRITIC_MAX_GRAD_NORM,
+        critic_max_grad_norm: float | None = None,
         actor_max_grad_norm: float = ACTOR_MAX_GRAD_NORM,
         **kwargs: Any,
     ) -> None:
-        if attention_reg < 0 or critic_max_grad_norm <= 0 or actor_max_grad_norm <= 0:
+        bad_critic_clip = critic_max_grad_norm is not None and critic_max_grad_norm <= 0
+        if attention_reg < 0 or bad_critic_clip or actor_max_grad_norm <= 0:
             raise ValueError("attention_reg must be >= 0 and the gradient-norm clips > 0")
         self.attention_reg = attention_reg
         self.critic_max_grad_norm = critic_max_grad_norm
@@ -84,11 +87,13 @@ class MAAC(FineTuneAdaptation, SAC):
         logs: dict[str, list[float]] = {"actor_loss": [], "critic_loss": [], "attention_reg": [], "ent_coef": []}
         critic_parameters = list(self.critic.parameters())
         shared_parameters = self.critic.shared_parameters()
+        n_agents = self.policy.agent_layout.n_agents
+        critic_max_grad_norm = self.critic_max_grad_norm or CRITIC_MAX_GRAD_NORM_PER_AGENT * n_agents
 
         for gradient_step in range(gradient_steps):
             data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
             discounts = data.discounts if data.discounts is not None else self.gamma
-            actions_pi, log_prob = self.actor.agent_action_log_prob(data.observations)  # (B, 9), (B, N)
+            actions_pi, log_prob = self.actor.agent_action_log_prob(data.observations)  # (B, N * 3), (B, N)
             ent_coef = self._update_ent_coef(log_prob.sum(-1, keepdim=True))
             logs["ent_coef"].append(ent_coef.item())
 
@@ -105,8 +110,8 @@ class MAAC(FineTuneAdaptation, SAC):
             self.critic.optimizer.zero_grad()
             critic_loss.backward()
             for parameter in shared_parameters:
-                parameter.grad.mul_(1.0 / NUM_ARMS)
-            th.nn.utils.clip_grad_norm_(critic_parameters, self.critic_max_grad_norm)
+                parameter.grad.mul_(1.0 / n_agents)
+            th.nn.utils.clip_grad_norm_(critic_parameters, critic_max_grad_norm)
             self.critic.optimizer.step()
 
             # Q_i with agent i's own sampled action live and the other agents' samples detached.

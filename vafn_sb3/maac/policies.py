@@ -9,9 +9,9 @@ The critic follows ``shariqiqbal2810/MAAC:utils/critics.py`` (``AttentionCritic`
   logits are scaled by ``1/sqrt(d_head)`` and softmaxed over the *other* agents only;
 - a per-agent head ``Q_i = f_i([., x_i])`` (``critics``) on the agent's encoding and its attention output ``x_i``.
 
-Continuous actions (MAAC's official code is discrete-only, see ``shared/notes/algorithms-maml-marl.md`` §3.4): the
-reference head reads the *state* encoding ``s_i`` and outputs a Q per discrete action; here the head reads ``e_i``, so
-agent ``i``'s own action enters ``Q_i`` and ``Q_i`` is a scalar. Per-agent weights are batched in
+Continuous actions (MAAC's official code is discrete-only): the reference head reads the *state* encoding ``s_i`` and
+outputs a Q per discrete action; here the head reads ``e_i``, so agent ``i``'s own action enters ``Q_i`` and ``Q_i`` is a
+scalar. Per-agent weights are batched in
 :class:`~vafn_sb3.common.agents.AgentwiseLinear` (identical to MAAC's ``nn.ModuleList`` per agent). MAAC's
 ``BatchNorm1d(affine=False)`` input normalisation is omitted (target-network BN-statistics pitfall, SB3 #996). Several
 attention critics (``n_critics``, twin by default, as in SB3's SAC) replace MAAC's single critic: an improvement over
@@ -27,8 +27,7 @@ from gymnasium import spaces
 from stable_baselines3.common.policies import BaseModel
 from torch import nn
 
-from vafn_gym.constants import ACTION_PER_ARM, NUM_ARMS, OBS_PER_ARM
-from vafn_sb3.common.agents import AgentwiseLinear, SharedAgentSACPolicy, check_joint_spaces, split_agents
+from vafn_sb3.common.agents import AgentLayout, AgentwiseLinear, SharedAgentSACPolicy, split_agents
 
 #: MAAC's default number of attention heads (``main.py``: ``--attend_heads 4``).
 DEFAULT_ATTEND_HEADS = 4
@@ -39,30 +38,37 @@ DEFAULT_NET_ARCH = {"pi": [128, 128], "qf": [128]}
 class AttentionQ(nn.Module):
     """One attention critic returning every agent's ``Q_i(o, a)`` and the attention logits.
 
+    :param layout: the per-agent layout (at least two agents: each attends over the others).
     :param hidden_dim: width of the encoders, of the attention (all heads together) and of the head's hidden layer.
     :param attend_heads: number of attention heads (must divide ``hidden_dim``).
     """
 
-    def __init__(self, hidden_dim: int, attend_heads: int) -> None:
+    def __init__(self, layout: AgentLayout, hidden_dim: int, attend_heads: int) -> None:
         super().__init__()
         if hidden_dim % attend_heads != 0:
             raise ValueError(f"hidden_dim ({hidden_dim}) must be divisible by attend_heads ({attend_heads})")
+        if layout.n_agents < 2:
+            raise ValueError(f"the attention critic needs at least 2 agents, got {layout.n_agents}")
+        self.layout = layout
         self.attend_heads = attend_heads
         self.head_dim = hidden_dim // attend_heads
-        self.sa_encoder = nn.Sequential(AgentwiseLinear(OBS_PER_ARM + ACTION_PER_ARM, hidden_dim), nn.LeakyReLU())
-        self.state_encoder = nn.Sequential(AgentwiseLinear(OBS_PER_ARM, hidden_dim), nn.LeakyReLU())
+        n_agents, obs_per_agent = layout.n_agents, layout.obs_per_agent
+        self.sa_encoder = nn.Sequential(
+            AgentwiseLinear(n_agents, obs_per_agent + layout.action_per_agent, hidden_dim), nn.LeakyReLU()
+        )
+        self.state_encoder = nn.Sequential(AgentwiseLinear(n_agents, obs_per_agent, hidden_dim), nn.LeakyReLU())
         # All heads stacked in one matrix: identical to MAAC's per-head nn.Linear(hidden_dim, attend_dim) lists.
         self.key_extractor = nn.Linear(hidden_dim, hidden_dim, bias=False)
         self.selector_extractor = nn.Linear(hidden_dim, hidden_dim, bias=False)
         self.value_extractor = nn.Sequential(nn.Linear(hidden_dim, hidden_dim), nn.LeakyReLU())
         self.head = nn.Sequential(
-            AgentwiseLinear(2 * hidden_dim, hidden_dim), nn.LeakyReLU(), AgentwiseLinear(hidden_dim, 1)
+            AgentwiseLinear(n_agents, 2 * hidden_dim, hidden_dim), nn.LeakyReLU(), AgentwiseLinear(n_agents, hidden_dim, 1)
         )
-        others = ~th.eye(NUM_ARMS, dtype=th.bool)
+        others = ~th.eye(n_agents, dtype=th.bool)
         self.register_buffer("others_mask", others, persistent=False)
 
     def _encode(self, local_obs: th.Tensor, actions: th.Tensor) -> th.Tensor:
-        return self.sa_encoder(th.cat([local_obs, split_agents(actions, ACTION_PER_ARM)], dim=-1))
+        return self.sa_encoder(th.cat([local_obs, split_agents(actions, self.layout.action_per_agent)], dim=-1))
 
     def shared_parameters(self) -> list[nn.Parameter]:
         """Parameters whose gradients MAAC scales by ``1/n_agents`` (``AttentionCritic.shared_modules``)."""
@@ -72,29 +78,30 @@ class AttentionQ(nn.Module):
     def forward(
         self, obs: th.Tensor, actions: th.Tensor, others_actions: th.Tensor | None = None
     ) -> tuple[th.Tensor, th.Tensor]:
-        """Per-agent ``Q (B, NUM_ARMS)`` and attention logits ``(B, heads, NUM_ARMS, NUM_ARMS - 1)``.
+        """Per-agent ``Q (B, N)`` and attention logits ``(B, heads, N, N - 1)``.
 
-        :param obs: joint observations ``(B, OBS_DIM)``.
-        :param actions: joint actions ``(B, ACTION_DIM)``; agent ``i``'s block enters ``Q_i`` through its own encoding.
+        :param obs: joint observations ``(B, N * obs_per_agent)``.
+        :param actions: joint actions ``(B, N * action_per_agent)``; agent ``i``'s block enters ``Q_i`` through its own encoding.
         :param others_actions: joint actions the *other* agents' keys and values are computed from (default
             ``actions``). Passing ``actions.detach()`` gives every ``Q_i`` a gradient w.r.t. ``a_i`` only, in one
             forward pass (``Q_i`` attends over ``j != i`` only, so its sole path to ``a_i`` is ``e_i``).
         """
-        local_obs = split_agents(obs, OBS_PER_ARM)
+        n_agents = self.layout.n_agents
+        local_obs = split_agents(obs, self.layout.obs_per_agent)
         sa = self._encode(local_obs, actions)
         sa_others = sa if others_actions is None else self._encode(local_obs, others_actions)
         s = self.state_encoder(local_obs)
         batch = obs.shape[0]
-        shape = (batch, NUM_ARMS, self.attend_heads, self.head_dim)
+        shape = (batch, n_agents, self.attend_heads, self.head_dim)
         keys = self.key_extractor(sa_others).view(shape)
         values = self.value_extractor(sa_others).view(shape)
         queries = self.selector_extractor(s).view(shape)
         logits = th.einsum("bihd,bjhd->bhij", queries, keys)  # (B, heads, i, j): agent i attends to agent j
-        logits = logits[:, :, self.others_mask].view(batch, self.attend_heads, NUM_ARMS, NUM_ARMS - 1)
+        logits = logits[:, :, self.others_mask].view(batch, self.attend_heads, n_agents, n_agents - 1)
         weights = th.softmax(logits / self.head_dim**0.5, dim=-1)
-        other_values = values.unsqueeze(1).expand(batch, NUM_ARMS, NUM_ARMS, *shape[2:])[:, self.others_mask]
-        other_values = other_values.view(batch, NUM_ARMS, NUM_ARMS - 1, self.attend_heads, self.head_dim)
-        attended = th.einsum("bhij,bijhd->bihd", weights, other_values).reshape(batch, NUM_ARMS, -1)
+        other_values = values.unsqueeze(1).expand(batch, n_agents, n_agents, *shape[2:])[:, self.others_mask]
+        other_values = other_values.view(batch, n_agents, n_agents - 1, self.attend_heads, self.head_dim)
+        attended = th.einsum("bhij,bijhd->bihd", weights, other_values).reshape(batch, n_agents, -1)
         q = self.head(th.cat([sa, attended], dim=-1)).squeeze(-1)
         return q, logits
 
@@ -102,8 +109,8 @@ class AttentionQ(nn.Module):
 class AttentionCritic(BaseModel):
     """``n_critics`` independent :class:`AttentionQ` networks behind SB3's critic interface (``make_critic``).
 
-    :param observation_space: the 15-D joint observation space.
-    :param action_space: the 9-D joint action space.
+    :param observation_space: the joint observation space (``N`` blocks of ``obs_per_agent``).
+    :param action_space: the joint action space (``N`` blocks of ``action_per_agent``).
     :param net_arch: ``[hidden_dim]`` (MAAC's encoders and heads have one hidden width).
     :param features_extractor: SB3's features extractor (unused: the critic splits the raw joint observation).
     :param features_dim: SB3's features dimension (unused, kept for the ``make_critic`` signature).
@@ -112,6 +119,7 @@ class AttentionCritic(BaseModel):
     :param n_critics: number of attention critics (twin by default).
     :param share_features_extractor: SB3 flag (the critic has no trainable features extractor).
     :param attend_heads: number of attention heads.
+    :param layout: the per-agent layout (inferred from the spaces when None).
     """
 
     def __init__(
@@ -126,19 +134,20 @@ class AttentionCritic(BaseModel):
         n_critics: int = 2,
         share_features_extractor: bool = False,
         attend_heads: int = DEFAULT_ATTEND_HEADS,
+        layout: AgentLayout | None = None,
     ) -> None:
         super().__init__(observation_space, action_space, features_extractor=features_extractor,
                          normalize_images=normalize_images)
-        check_joint_spaces(observation_space, action_space)
+        self.layout = layout or AgentLayout.from_spaces(observation_space, action_space)
         if len(net_arch) != 1:
             raise ValueError(f"the attention critic takes net_arch qf=[hidden_dim] (one width), got {net_arch}")
         self.net_arch = net_arch
         self.n_critics = n_critics
         self.attend_heads = attend_heads
-        self.q_networks = nn.ModuleList(AttentionQ(net_arch[0], attend_heads) for _ in range(n_critics))
+        self.q_networks = nn.ModuleList(AttentionQ(self.layout, net_arch[0], attend_heads) for _ in range(n_critics))
 
     def forward(self, obs: th.Tensor, actions: th.Tensor) -> tuple[th.Tensor, ...]:
-        """Per-agent Q-values ``(B, NUM_ARMS)`` of every critic."""
+        """Per-agent Q-values ``(B, N)`` of every critic."""
         return tuple(q_net(obs, actions)[0] for q_net in self.q_networks)
 
     def own_action_q(self, obs: th.Tensor, actions: th.Tensor) -> tuple[th.Tensor, ...]:
@@ -150,14 +159,15 @@ class AttentionCritic(BaseModel):
         return [q_net(obs, actions) for q_net in self.q_networks]
 
     def shared_parameters(self) -> list[nn.Parameter]:
-        """Shared-across-agents parameters of every critic (their gradients are scaled by ``1/NUM_ARMS``)."""
+        """Shared-across-agents parameters of every critic (their gradients are scaled by ``1/N``)."""
         return [p for q_net in self.q_networks for p in q_net.shared_parameters()]
 
 
 class MAACPolicy(SharedAgentSACPolicy):
     """SAC policy with decentralised shared actors and :class:`AttentionCritic` critics.
 
-    Parameters are SB3's ``SACPolicy``'s, plus:
+    Parameters are SB3's ``SACPolicy``'s, the per-agent keywords of
+    :class:`~vafn_sb3.common.agents.AgentLayoutPolicyMixin`, plus:
 
     :param attend_heads: number of attention heads of the critic.
     """
@@ -171,7 +181,7 @@ class MAACPolicy(SharedAgentSACPolicy):
     def make_critic(self, features_extractor: nn.Module | None = None) -> AttentionCritic:
         """Build an attention critic."""
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
-        return AttentionCritic(**critic_kwargs, attend_heads=self.attend_heads).to(self.device)
+        return AttentionCritic(**critic_kwargs, attend_heads=self.attend_heads, layout=self.agent_layout).to(self.device)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()

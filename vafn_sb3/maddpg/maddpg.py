@@ -13,9 +13,9 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import MaybeCallback
 from stable_baselines3.common.utils import polyak_update
 
-from vafn_gym.constants import ACTION_DIM, NUM_ARMS
 from vafn_sb3.common.agents import clipped_step, substitute_agent_actions
 from vafn_sb3.common.finetune import FineTuneAdaptation, GaussianExplorationPolicy
+from vafn_sb3.common.serialization import AtomicSaveMixin
 from vafn_sb3.maddpg.policies import MADDPGPolicy
 
 SelfMADDPG = TypeVar("SelfMADDPG", bound="MADDPG")
@@ -28,7 +28,7 @@ ACTION_REG = 1e-3
 EXPLORATION_STD = 0.1
 
 
-class MADDPG(FineTuneAdaptation, TD3):
+class MADDPG(AtomicSaveMixin, FineTuneAdaptation, TD3):
     """MADDPG: deterministic decentralised actors ``mu_i(o_i)`` trained through one centralised critic ``Q(s, a)``.
 
     Critic: TD(0) regression onto ``r + gamma (1 - d) Qbar(s', mu'(o'_1), ..., mu'(o'_N))`` with target actors and
@@ -65,8 +65,6 @@ class MADDPG(FineTuneAdaptation, TD3):
     ) -> None:
         if action_reg < 0 or max_grad_norm <= 0 or exploration_std < 0:
             raise ValueError("action_reg and exploration_std must be >= 0, max_grad_norm > 0")
-        if action_noise is None and exploration_std > 0:
-            action_noise = NormalActionNoise(np.zeros(ACTION_DIM), exploration_std * np.ones(ACTION_DIM))
         self.action_reg = action_reg
         self.max_grad_norm = max_grad_norm
         self.exploration_std = exploration_std
@@ -75,12 +73,20 @@ class MADDPG(FineTuneAdaptation, TD3):
             **kwargs,
         )
 
+    def _setup_model(self) -> None:
+        """TD3's setup, then the default Gaussian exploration noise, sized by the action space."""
+        super()._setup_model()
+        if self.action_noise is None and self.exploration_std > 0:
+            n_actions = self.action_space.shape[0]
+            self.action_noise = NormalActionNoise(np.zeros(n_actions), self.exploration_std * np.ones(n_actions))
+
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
         """``gradient_steps`` MADDPG updates (centralised critic, per-agent substituted actor loss, soft targets)."""
         self.policy.set_training_mode(True)
         self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
         actor_losses, critic_losses = [], []
         critic_parameters, actor_parameters = list(self.critic.parameters()), list(self.actor.parameters())
+        layout = self.policy.agent_layout
         for _ in range(gradient_steps):
             self._n_updates += 1
             data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
@@ -100,8 +106,9 @@ class MADDPG(FineTuneAdaptation, TD3):
 
             if self._n_updates % self.policy_delay == 0:
                 policy_actions = self.actor(data.observations)
-                joint = substitute_agent_actions(data.actions, policy_actions)  # others' actions from the buffer
-                q = self.critic.q1_forward(data.observations.repeat(NUM_ARMS, 1), joint)
+                # others' actions from the buffer
+                joint = substitute_agent_actions(data.actions, policy_actions, layout.action_per_agent)
+                q = self.critic.q1_forward(data.observations.repeat(layout.n_agents, 1), joint)
                 actor_loss = -q.mean() + self.action_reg * (policy_actions**2).mean()
                 clipped_step(actor_loss, self.actor.optimizer, actor_parameters, self.max_grad_norm)
                 actor_losses.append(actor_loss.item())

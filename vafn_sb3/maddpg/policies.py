@@ -7,7 +7,7 @@ from typing import Any
 from stable_baselines3.td3.policies import TD3Policy
 from torch import nn
 
-from vafn_sb3.common.agents import DeterministicAgentActor
+from vafn_sb3.common.agents import AgentLayoutPolicyMixin, DeterministicAgentActor
 
 #: ``openai/maddpg:experiments/train.py``: ``--num-units 64`` in a two-hidden-layer MLP (``mlp_model``), for actor and critic.
 DEFAULT_NET_ARCH = [64, 64]
@@ -15,12 +15,13 @@ DEFAULT_NET_ARCH = [64, 64]
 DEFAULT_N_CRITICS = 1
 
 
-class MADDPGPolicy(TD3Policy):
+class MADDPGPolicy(AgentLayoutPolicyMixin, TD3Policy):
     """TD3 policy whose actor (and target actor) is :class:`DeterministicAgentActor`.
 
-    The critic is SB3's ``ContinuousCritic`` over the 15-D global state and the 9-D joint action: the centralised
+    The critic is SB3's ``ContinuousCritic`` over the joint observation and the joint action: the centralised
     ``Q(x, a_1, ..., a_N)`` of ``openai/maddpg:maddpg/trainer/maddpg.py`` (``q_train`` reads ``obs_ph_n + act_ph_n``).
-    Parameters are SB3's ``TD3Policy``'s (defaults: ``net_arch=[64, 64]``, ``n_critics=1``).
+    Parameters are SB3's ``TD3Policy``'s (defaults: ``net_arch=[64, 64]``, ``n_critics=1``) plus the per-agent keywords
+    of :class:`~vafn_sb3.common.agents.AgentLayoutPolicyMixin`.
     """
 
     actor: DeterministicAgentActor
@@ -34,7 +35,7 @@ class MADDPGPolicy(TD3Policy):
     def make_actor(self, features_extractor: nn.Module | None = None) -> DeterministicAgentActor:
         """Build the shared per-agent deterministic actor."""
         actor_kwargs = self._update_features_extractor(self.actor_kwargs, features_extractor)
-        return DeterministicAgentActor(**actor_kwargs).to(self.device)
+        return DeterministicAgentActor(**self._agent_actor_kwargs(actor_kwargs)).to(self.device)
 
 
 MlpPolicy = MADDPGPolicy

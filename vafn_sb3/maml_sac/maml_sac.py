@@ -40,6 +40,7 @@ from torch.func import vmap
 from vafn_gym.instructions import Instruction
 from vafn_gym.tasks import TaskSampler
 from vafn_sb3.common.adaptation import SupportSet, collect_support
+from vafn_sb3.common.serialization import AtomicSaveMixin
 from vafn_sb3.maml_sac.functional import (
     ActorDistribution,
     Params,
@@ -92,7 +93,7 @@ class AdaptedSACPolicy:
         return (actions if vectorized else actions[0]), None
 
 
-class MAMLSAC(SAC):
+class MAMLSAC(AtomicSaveMixin, SAC):
     """SAC meta-trained with MAML over the env's task distribution; :meth:`adapt` specialises it to one task.
 
     Takes every :class:`~stable_baselines3.SAC` argument (``kwargs``), plus:

@@ -11,9 +11,9 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import MaybeCallback
 
-from vafn_gym.constants import OBS_DIM
 from vafn_sb3.common.adaptation import SupportSet
 from vafn_sb3.common.finetune import FineTuneAdaptation
+from vafn_sb3.common.serialization import AtomicSaveMixin
 from vafn_sb3.mappo.policies import AgentRolloutBuffer, MAPPOPolicy
 
 SelfMAPPO = TypeVar("SelfMAPPO", bound="MAPPO")
@@ -32,7 +32,7 @@ CLIP_RANGE = 0.2
 ADVANTAGE_EPS = 1e-5
 
 
-class MAPPO(FineTuneAdaptation, PPO):
+class MAPPO(AtomicSaveMixin, FineTuneAdaptation, PPO):
     """Multi-agent PPO with a shared decentralised actor, a centralised critic, per-agent ratios and ValueNorm.
 
     Follows ``marlbenchmark/on-policy:onpolicy/algorithms/r_mappo/r_mappo.py`` (``R_MAPPO.train``/``ppo_update``):
@@ -109,11 +109,11 @@ class MAPPO(FineTuneAdaptation, PPO):
         """Per-agent old log-probs and old normalised values (policy = behaviour policy), normalised advantages."""
         buffer = self.rollout_buffer
         with th.no_grad():
-            observations = buffer.to_torch(buffer.observations.reshape(-1, OBS_DIM))
-            actions = buffer.to_torch(buffer.actions.reshape(len(observations), -1))
+            n_samples = buffer.buffer_size * buffer.n_envs
+            observations = buffer.to_torch(buffer.observations.reshape(n_samples, -1))
+            actions = buffer.to_torch(buffer.actions.reshape(n_samples, -1))
             values, agent_log_prob, _ = self.policy.evaluate_agent_actions(observations, actions)
-        buffer.old_agent_log_prob = agent_log_prob.cpu().numpy().reshape(buffer.old_agent_log_prob.shape)
-        buffer.old_normalized_values = values.cpu().numpy().reshape(buffer.old_normalized_values.shape)
+        buffer.set_agent_statistics(agent_log_prob.cpu().numpy(), values.cpu().numpy())
         if self.normalize_advantage:
             advantages = buffer.advantages
             buffer.advantages = (advantages - advantages.mean()) / (advantages.std() + ADVANTAGE_EPS)

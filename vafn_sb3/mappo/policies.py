@@ -1,4 +1,4 @@
-"""MAPPO policy: one Gaussian actor shared by the agents over (local obs, one-hot id), a centralised V(s) with ValueNorm.
+"""MAPPO policy: one Gaussian actor shared by the agents over (local obs[, one-hot id]), a centralised V(s), ValueNorm.
 
 Follows ``marlbenchmark/on-policy``: ``onpolicy/algorithms/r_mappo/algorithm/r_actor_critic.py`` (``R_Actor`` on each
 agent's obs, ``R_Critic`` on the shared obs), ``onpolicy/algorithms/utils/mlp.py`` (LayerNorm on the input and after
@@ -21,11 +21,11 @@ from stable_baselines3.common.type_aliases import PyTorchObs
 from stable_baselines3.common.vec_env import VecNormalize
 from torch import nn
 
-from vafn_gym.constants import ACTION_PER_ARM, NUM_ARMS, OBS_DIM
 from vafn_sb3.common.agents import (
     AgentHead,
+    AgentLayout,
+    AgentLayoutPolicyMixin,
     SharedAgentMLP,
-    check_joint_spaces,
     merge_agents,
     mlp_layers,
     per_agent_sum,
@@ -87,21 +87,32 @@ class ValueNorm(nn.Module):
 class MAPPOExtractor(nn.Module):
     """SB3 ``mlp_extractor`` with a decentralised shared actor trunk and a centralised critic trunk.
 
+    :param layout: the per-agent layout.
     :param pi_arch: hidden widths of the shared per-agent actor MLP.
-    :param vf_arch: hidden widths of the critic MLP on the 15-D global state.
+    :param vf_arch: hidden widths of the critic MLP on the joint observation (the global state).
     :param activation_fn: activation class.
     :param layer_norm: on-policy LayerNorms on inputs and hidden layers.
+    :param agent_ids: append a one-hot agent id to every agent's actor input.
     """
 
-    def __init__(self, pi_arch: list[int], vf_arch: list[int], activation_fn: type[nn.Module], layer_norm: bool) -> None:
+    def __init__(
+        self,
+        layout: AgentLayout,
+        pi_arch: list[int],
+        vf_arch: list[int],
+        activation_fn: type[nn.Module],
+        layer_norm: bool,
+        agent_ids: bool = True,
+    ) -> None:
         super().__init__()
-        self.policy_net = SharedAgentMLP(pi_arch, activation_fn, layer_norm)
-        self.value_net, self.latent_dim_vf = mlp_layers(OBS_DIM, vf_arch, activation_fn, layer_norm)
+        n_agent_ids = layout.n_agents if agent_ids else 0
+        self.policy_net = SharedAgentMLP(layout.obs_per_agent, pi_arch, activation_fn, layer_norm, n_agent_ids)
+        self.value_net, self.latent_dim_vf = mlp_layers(layout.obs_dim, vf_arch, activation_fn, layer_norm)
         self.agent_latent_dim = self.policy_net.latent_dim
-        self.latent_dim_pi = NUM_ARMS * self.agent_latent_dim
+        self.latent_dim_pi = layout.n_agents * self.agent_latent_dim
 
     def forward(self, features: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        """Actor latent ``(B, NUM_ARMS * h)`` and critic latent ``(B, h_v)``."""
+        """Actor latent ``(B, N * h)`` and critic latent ``(B, h_v)``."""
         return self.forward_actor(features), self.forward_critic(features)
 
     def forward_actor(self, features: th.Tensor) -> th.Tensor:
@@ -113,10 +124,11 @@ class MAPPOExtractor(nn.Module):
         return self.value_net(features)
 
 
-class MAPPOPolicy(ActorCriticPolicy):
+class MAPPOPolicy(AgentLayoutPolicyMixin, ActorCriticPolicy):
     """MAPPO actor-critic; ``forward``/``predict_values`` return *denormalised* values so SB3's GAE is unchanged.
 
-    Parameters are SB3's ``ActorCriticPolicy``'s (defaults: ``net_arch=[64, 64]``, ReLU, ``log_std_init=0``), plus:
+    Parameters are SB3's ``ActorCriticPolicy``'s (defaults: ``net_arch=[64, 64]``, ReLU, ``log_std_init=0``), the
+    per-agent keywords of :class:`~vafn_sb3.common.agents.AgentLayoutPolicyMixin`, plus:
 
     :param layer_norm: on-policy LayerNorms (``use_feature_normalization`` and ``MLPLayer``).
     """
@@ -132,22 +144,25 @@ class MAPPOPolicy(ActorCriticPolicy):
         super().__init__(*args, **kwargs)
 
     def _build_mlp_extractor(self) -> None:
-        check_joint_spaces(self.observation_space, self.action_space)
         if isinstance(self.net_arch, dict):
             pi_arch, vf_arch = self.net_arch.get("pi", []), self.net_arch.get("vf", [])
         else:
             pi_arch = vf_arch = list(self.net_arch)
-        self.mlp_extractor = MAPPOExtractor(pi_arch, vf_arch, self.activation_fn, self.layer_norm)
+        self.mlp_extractor = MAPPOExtractor(
+            self.agent_layout, pi_arch, vf_arch, self.activation_fn, self.layer_norm, self.agent_ids
+        )
 
     def _build(self, lr_schedule: Any) -> None:
         super()._build(lr_schedule)
         if not isinstance(self.action_dist, DiagGaussianDistribution):
             raise ValueError(f"MAPPO needs a Box action space (Gaussian actions), got {self.action_space}")
-        # Replace SB3's joint head and 9-D log-std by the per-agent shared head and a 3-D shared log-std.
+        # Replace SB3's joint head and joint log-std by the per-agent shared head and one per-agent log-std.
         del self.log_std
-        agent_latent_dim = self.mlp_extractor.agent_latent_dim
-        self.action_net = nn.Sequential(nn.Unflatten(-1, (NUM_ARMS, agent_latent_dim)), AgentHead(agent_latent_dim))
-        self.agent_log_std = nn.Parameter(th.full((ACTION_PER_ARM,), float(self.log_std_init)))
+        layout, agent_latent_dim = self.agent_layout, self.mlp_extractor.agent_latent_dim
+        self.action_net = nn.Sequential(
+            nn.Unflatten(-1, (layout.n_agents, agent_latent_dim)), AgentHead(agent_latent_dim, layout.action_per_agent)
+        )
+        self.agent_log_std = nn.Parameter(th.full((layout.action_per_agent,), float(self.log_std_init)))
         if self.ortho_init:
             self.action_net.apply(partial(self.init_weights, gain=ACTION_GAIN))
         self.value_norm = ValueNorm()
@@ -159,7 +174,7 @@ class MAPPOPolicy(ActorCriticPolicy):
         return data
 
     def _get_action_dist_from_latent(self, latent_pi: th.Tensor) -> DiagGaussianDistribution:
-        return self.action_dist.proba_distribution(self.action_net(latent_pi), self.agent_log_std.repeat(NUM_ARMS))
+        return self.action_dist.proba_distribution(self.action_net(latent_pi), self.agent_log_std.repeat(self.agent_layout.n_agents))
 
     def actor_parameters(self) -> list[nn.Parameter]:
         """Parameters of the shared actor (clipped separately, as on-policy's ``actor_optimizer`` group)."""
@@ -184,12 +199,13 @@ class MAPPOPolicy(ActorCriticPolicy):
         return self.value_norm.denormalize(values), log_prob, entropy
 
     def evaluate_agent_actions(self, obs: th.Tensor, actions: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
-        """Normalised values ``(B,)``, per-agent log-probabilities ``(B, NUM_ARMS)`` and entropies ``(B, NUM_ARMS)``."""
+        """Normalised values ``(B,)``, per-agent log-probabilities ``(B, N)`` and entropies ``(B, N)``."""
         features = self.extract_features(obs)
         latent_pi, latent_vf = self.mlp_extractor(features)
         distribution = self._get_action_dist_from_latent(latent_pi).distribution
-        log_prob = per_agent_sum(distribution.log_prob(actions))
-        entropy = per_agent_sum(distribution.entropy())
+        action_per_agent = self.agent_layout.action_per_agent
+        log_prob = per_agent_sum(distribution.log_prob(actions), action_per_agent)
+        entropy = per_agent_sum(distribution.entropy(), action_per_agent)
         return self.value_net(latent_vf).flatten(), log_prob, entropy
 
 
@@ -209,15 +225,25 @@ class AgentRolloutBufferSamples(NamedTuple):
 class AgentRolloutBuffer(RolloutBuffer):
     """Rollout buffer that also serves per-agent old log-probabilities and old normalised values.
 
-    SB3 stores joint log-probabilities only; MAPPO fills :attr:`old_agent_log_prob` and :attr:`old_normalized_values`
-    once per rollout (before the first update, when the policy still equals the behaviour policy).
+    SB3 stores joint log-probabilities only; MAPPO fills :attr:`old_agent_log_prob` ``(buffer_size, n_envs, N)`` and
+    :attr:`old_normalized_values` once per rollout (before the first update, when the policy still equals the behaviour
+    policy) with :meth:`set_agent_statistics`; the buffer itself does not need to know ``N``.
     """
 
     def reset(self) -> None:
         """Empty the buffer (and the per-agent arrays)."""
         super().reset()
-        self.old_agent_log_prob = np.zeros((self.buffer_size, self.n_envs, NUM_ARMS), dtype=np.float32)
+        self.old_agent_log_prob = np.zeros((self.buffer_size, self.n_envs, 0), dtype=np.float32)
         self.old_normalized_values = np.zeros((self.buffer_size, self.n_envs), dtype=np.float32)
+
+    def set_agent_statistics(self, agent_log_prob: np.ndarray, normalized_values: np.ndarray) -> None:
+        """Store the behaviour policy's per-agent log-probabilities and normalised values, rows in buffer order.
+
+        :param agent_log_prob: ``(buffer_size * n_envs, N)``.
+        :param normalized_values: ``(buffer_size * n_envs,)``.
+        """
+        self.old_agent_log_prob = agent_log_prob.reshape(self.buffer_size, self.n_envs, -1)
+        self.old_normalized_values = normalized_values.reshape(self.buffer_size, self.n_envs)
 
     def get(self, batch_size: int | None = None):  # type: ignore[override]
         """Minibatches of :class:`AgentRolloutBufferSamples` (see SB3's ``RolloutBuffer.get``)."""

@@ -9,20 +9,21 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import MaybeCallback
 
 from vafn_sb3.common.finetune import FineTuneAdaptation
+from vafn_sb3.common.serialization import AtomicSaveMixin
 from vafn_sb3.mtsac.policies import MlpPolicy, SharedAgentPolicy
 
 SelfMTSAC = TypeVar("SelfMTSAC", bound="MTSAC")
 
 
-class MTSAC(FineTuneAdaptation, SAC):
+class MTSAC(AtomicSaveMixin, FineTuneAdaptation, SAC):
     """Plain SB3 SAC trained on the union of training tasks; ``adapt`` fine-tunes it on the support set.
 
     Training is SB3's SAC unchanged: pre-train on an env that samples training instructions every episode (e.g.
     ``VAFN/ThreeArmReachHidden-v0`` with ``split="train"``). ``adapt`` (from
     :class:`~vafn_sb3.common.finetune.FineTuneAdaptation`) runs ``k`` full-batch SAC updates (critic, actor, temperature,
     target networks, with SAC's own Adam optimisers) on exactly the support data MAML-SAC receives, then restores the
-    model. This is the "multi-task pre-training + fine-tuning" baseline of Mandi et al. (NeurIPS 2022), the must-have
-    comparison of ``shared/notes/algorithms-maml-marl.md`` §2.3. Parameters are SB3's ``SAC``'s.
+    model. This is the "multi-task pre-training + fine-tuning" baseline of Mandi et al. (NeurIPS 2022). Parameters are
+    SB3's ``SAC``'s.
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {

@@ -1,0 +1,413 @@
+"""Safe model files: atomic writes for every save, and a weights-only format that loading cannot execute code from.
+
+- :func:`atomic_write` writes through a temporary file in the target's folder and renames it onto the target, so a crash
+  mid-write leaves the previous file intact; :class:`AtomicSaveMixin` routes SB3's ``save`` through it and makes
+  ``load`` reject truncated or incomplete zips with a ``ValueError`` naming the file.
+- SB3's ``load`` unpickles (cloudpickle) the ``data`` entry of the zip, which can run arbitrary code from an untrusted
+  file. :func:`save_weights` / :func:`load_weights` use a second format that needs no unpickling: one zip holding
+  ``config.json`` (algorithm name, Box spaces, policy alias, JSON-safe ``policy_kwargs`` with classes stored by name,
+  JSON-safe hyperparameters) and ``policy.pt`` / ``variables.pt`` (plain tensor dicts, read with
+  ``torch.load(weights_only=True)``). Optimiser states and non-JSON hyperparameters (schedules other than constants,
+  action-noise objects, buffer classes) are not stored; they take their defaults on load.
+"""
+
+from __future__ import annotations
+
+import enum
+import inspect
+import io
+import json
+import os
+import secrets
+import zipfile
+import zlib
+from pathlib import Path
+from types import ModuleType
+from typing import Any, Callable, ClassVar
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common import torch_layers
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.save_util import recursive_getattr, recursive_setattr
+from stable_baselines3.common.utils import ConstantSchedule, FloatSchedule, check_for_correct_spaces
+from torch import nn
+
+#: ``format`` field of a weights file's ``config.json`` and the version this module writes and reads.
+WEIGHTS_FORMAT = "vafn-weights"
+WEIGHTS_VERSION = 1
+CONFIG_ENTRY = "config.json"
+POLICY_ENTRY = "policy.pt"
+VARIABLES_ENTRY = "variables.pt"
+#: Constructor parameters that are never stored as hyperparameters: given at load time, stored separately, or
+#: machine-specific.
+_NOT_HYPERPARAMETERS = frozenset(
+    {"self", "args", "kwargs", "policy", "env", "device", "policy_kwargs", "_init_setup_model", "tensorboard_log"}
+)
+#: Box dtypes a weights file may declare.
+_SPACE_DTYPES = ("float32", "float64")
+
+
+class _ClassKwarg:
+    """A class-valued policy keyword stored by name and resolved only inside one module, to subclasses of one base."""
+
+    def __init__(self, module: ModuleType, base: type) -> None:
+        self.module = module
+        self.base = base
+
+    def resolve(self, name: Any) -> type:
+        value = getattr(self.module, name, None) if isinstance(name, str) else None
+        if not (isinstance(value, type) and issubclass(value, self.base)) or value is self.base:
+            raise ValueError(f"{name!r} is not a {self.base.__name__} class of {self.module.__name__}")
+        return value
+
+
+#: Class-valued ``policy_kwargs`` a weights file may name; any other class needs pickling and is refused.
+_CLASS_KWARGS = {
+    "activation_fn": _ClassKwarg(nn.modules.activation, nn.Module),
+    "optimizer_class": _ClassKwarg(th.optim, th.optim.Optimizer),
+    "features_extractor_class": _ClassKwarg(torch_layers, torch_layers.BaseFeaturesExtractor),
+}
+
+
+class _NotJSON(TypeError):
+    """A value with no JSON form."""
+
+
+def atomic_write(path: str | os.PathLike[str], write_fn: Callable[[Path], None]) -> Path:
+    """Run ``write_fn(tmp)`` on a fresh temporary path in ``path``'s folder, then rename it onto ``path``.
+
+    Either the complete new file replaces ``path`` or, if ``write_fn`` raises (or the process dies), ``path`` keeps its
+    previous content and the temporary file is removed (a killed process may leave a hidden ``.<name>.*.tmp`` file).
+    The temporary path keeps ``path``'s suffix, so writers that add a default suffix (SB3's ``save``) leave it as is.
+
+    :param path: the file to (over)write; its folder is created if needed.
+    :param write_fn: writes the whole file to the path it is given.
+    :return: ``path`` as a ``Path``.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(8)}.tmp{path.suffix}")
+    try:
+        write_fn(tmp)
+        # Flush to disk before the rename: otherwise a power loss can leave the renamed file empty.
+        with open(tmp, "rb+") as file:
+            os.fsync(file.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def sb3_zip_path(path: str | os.PathLike[str]) -> Path:
+    """The file SB3's ``save`` writes for ``path``: ``path`` itself, or ``path.zip`` when it has no suffix."""
+    path = Path(path)
+    return path if path.suffix else Path(f"{path}.zip")
+
+
+def check_model_zip(path: str | os.PathLike[str] | io.BufferedIOBase) -> None:
+    """Raise a ``ValueError`` naming the file unless it is a complete, uncorrupted SB3 model zip.
+
+    SB3 itself reports a zip without its ``data`` entry with a bare ``assert`` (which ``python -O`` removes). A missing
+    file is left to SB3's ``load`` (``FileNotFoundError``).
+
+    :param path: the model file (with or without its ``.zip`` suffix) or an open binary file.
+    """
+    if isinstance(path, io.BufferedIOBase):
+        position = path.tell()
+        try:
+            _check_zip_entries(path, repr(path), ("data", "policy.pth"))
+        finally:
+            path.seek(position)
+        return
+    file = Path(path)
+    if not file.exists() and Path(f"{file}.zip").exists():
+        file = Path(f"{file}.zip")
+    if file.is_file():
+        _check_zip_entries(file, str(file), ("data", "policy.pth"))
+
+
+def _check_zip_entries(file: Path | io.BufferedIOBase, name: str, required: tuple[str, ...]) -> list[str]:
+    try:
+        with zipfile.ZipFile(file) as archive:
+            entries = archive.namelist()
+            corrupt = archive.testzip()
+    except (zipfile.BadZipFile, zlib.error, EOFError) as error:
+        raise ValueError(f"{name} is not a readable model file (truncated or corrupt zip): {error}") from error
+    if corrupt is not None:
+        raise ValueError(f"{name} is corrupt: entry {corrupt!r} fails its checksum")
+    missing = [entry for entry in required if entry not in entries]
+    if missing:
+        raise ValueError(f"{name} is incomplete: no {', '.join(missing)} entry (an interrupted or partial save?)")
+    return entries
+
+
+class AtomicSaveMixin:
+    """Algorithm mixin (first in the bases): atomic ``save`` and a ``load`` that rejects broken files with ValueError."""
+
+    def save(
+        self,
+        path: str | os.PathLike[str] | io.BufferedIOBase,
+        exclude: list[str] | None = None,
+        include: list[str] | None = None,
+    ) -> None:
+        """SB3's ``save`` through :func:`atomic_write`: a crash mid-save keeps the previous file (file objects as is)."""
+        save = super().save  # type: ignore[misc]
+        if isinstance(path, io.BufferedIOBase):
+            save(path, exclude, include)
+        else:
+            atomic_write(sb3_zip_path(path), lambda tmp: save(tmp, exclude, include))
+
+    @classmethod
+    def load(
+        cls,
+        path: str | os.PathLike[str] | io.BufferedIOBase,
+        env: Any = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        **kwargs: Any,
+    ) -> Any:
+        """SB3's ``load`` (which unpickles: trusted files only) after :func:`check_model_zip`."""
+        check_model_zip(path)
+        return super().load(  # type: ignore[misc]
+            path, env=env, device=device, custom_objects=custom_objects, print_system_info=print_system_info,
+            force_reset=force_reset, **kwargs,
+        )
+
+
+# --- weights-only files ---------------------------------------------------------------------------------------------
+
+
+def _algorithms() -> dict[str, type[BaseAlgorithm]]:
+    # Imported here, not at module level: the vafn algorithms import this module for AtomicSaveMixin.
+    from stable_baselines3 import PPO, SAC, TD3
+
+    from vafn_sb3.maac import MAAC
+    from vafn_sb3.maddpg import MADDPG
+    from vafn_sb3.maml_sac import MAMLSAC
+    from vafn_sb3.mappo import MAPPO
+    from vafn_sb3.mtsac import MTSAC
+
+    return {cls.__name__: cls for cls in (SAC, TD3, PPO, MAAC, MADDPG, MAMLSAC, MAPPO, MTSAC)}
+
+
+def weights_algorithms() -> list[str]:
+    """Names of the algorithms :func:`save_weights` and :func:`load_weights` support."""
+    return sorted(_algorithms())
+
+
+def _to_json(value: Any) -> Any:
+    """``value`` as plain JSON data; constant SB3 schedules become their constant, enums their value."""
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, enum.Enum):
+        return _to_json(value.value)
+    if isinstance(value, FloatSchedule):
+        return _to_json(value.value_schedule)
+    if isinstance(value, ConstantSchedule):
+        return _to_json(value.val)
+    if isinstance(value, (list, tuple)):
+        return [_to_json(item) for item in value]
+    if isinstance(value, dict) and all(isinstance(key, str) for key in value):
+        return {key: _to_json(item) for key, item in value.items()}
+    raise _NotJSON(f"{type(value).__name__} has no JSON form")
+
+
+def _hyperparameter_names(cls: type[BaseAlgorithm]) -> set[str]:
+    """Public constructor parameters of ``cls``: its own, and its bases' for as long as ``**kwargs`` passes them on."""
+    names: set[str] = set()
+    for klass in cls.__mro__:
+        if "__init__" not in vars(klass):
+            continue
+        parameters = inspect.signature(klass.__init__).parameters
+        names.update(parameters)
+        if not any(parameter.kind is inspect.Parameter.VAR_KEYWORD for parameter in parameters.values()):
+            break
+    return names - _NOT_HYPERPARAMETERS
+
+
+def _policy_alias(model: BaseAlgorithm) -> str:
+    for alias, policy_class in model.policy_aliases.items():
+        if policy_class is model.policy_class:
+            return alias
+    raise ValueError(
+        f"{type(model).__name__}'s policy class {model.policy_class.__name__} has no alias in policy_aliases "
+        f"({sorted(model.policy_aliases)}); a weights file names the policy by alias"
+    )
+
+
+def _encode_policy_kwargs(policy_kwargs: dict[str, Any]) -> dict[str, Any]:
+    encoded: dict[str, Any] = {}
+    for key, value in policy_kwargs.items():
+        if key in _CLASS_KWARGS:
+            name = getattr(value, "__name__", None)
+            if _CLASS_KWARGS[key].resolve(name) is not value:
+                raise ValueError(f"policy_kwargs[{key!r}] = {value!r} cannot be stored by name")
+            encoded[key] = name
+            continue
+        try:
+            encoded[key] = _to_json(value)
+        except _NotJSON as error:
+            raise ValueError(f"policy_kwargs[{key!r}] = {value!r} cannot be stored without pickling: {error}") from None
+    return encoded
+
+
+def _decode_policy_kwargs(encoded: Any) -> dict[str, Any]:
+    if not isinstance(encoded, dict):
+        raise ValueError(f"policy_kwargs must be a JSON object, got {type(encoded).__name__}")
+    return {key: _CLASS_KWARGS[key].resolve(value) if key in _CLASS_KWARGS else value for key, value in encoded.items()}
+
+
+def _encode_space(space: spaces.Space) -> dict[str, Any]:
+    if not isinstance(space, spaces.Box) or space.dtype.name not in _SPACE_DTYPES:
+        raise ValueError(f"weights files support float Box spaces only, got {space}")
+    return {"type": "Box", "shape": list(space.shape), "dtype": space.dtype.name,
+            "low": space.low.tolist(), "high": space.high.tolist()}
+
+
+def _decode_space(encoded: Any) -> spaces.Box:
+    if not isinstance(encoded, dict) or encoded.get("type") != "Box" or encoded.get("dtype") not in _SPACE_DTYPES:
+        raise ValueError(f"expected a float Box space description, got {encoded!r}")
+    try:
+        shape = tuple(int(size) for size in encoded["shape"])
+        low = np.asarray(encoded["low"], dtype=encoded["dtype"]).reshape(shape)
+        high = np.asarray(encoded["high"], dtype=encoded["dtype"]).reshape(shape)
+    except (KeyError, TypeError, ValueError) as error:
+        raise ValueError(f"malformed Box space description {encoded!r}: {error}") from error
+    return spaces.Box(low=low, high=high, shape=shape, dtype=encoded["dtype"])
+
+
+def weights_config(model: BaseAlgorithm) -> dict[str, Any]:
+    """The ``config.json`` of :func:`save_weights`; ``ValueError`` if the model cannot be rebuilt from JSON alone."""
+    name = type(model).__name__
+    if _algorithms().get(name) is not type(model):
+        raise ValueError(f"weights files support {weights_algorithms()}, got {type(model).__qualname__}")
+    hyperparameters, not_saved = {}, []
+    for key in sorted(_hyperparameter_names(type(model))):
+        if key not in vars(model):
+            continue
+        try:
+            hyperparameters[key] = _to_json(vars(model)[key])
+        except _NotJSON:
+            not_saved.append(key)
+    return {
+        "format": WEIGHTS_FORMAT,
+        "version": WEIGHTS_VERSION,
+        "algorithm": name,
+        "observation_space": _encode_space(model.observation_space),
+        "action_space": _encode_space(model.action_space),
+        "policy": _policy_alias(model),
+        "policy_kwargs": _encode_policy_kwargs(model.policy_kwargs),
+        "hyperparameters": hyperparameters,
+        "not_saved": not_saved,
+    }
+
+
+def _tensor_bytes(tensors: dict[str, th.Tensor]) -> bytes:
+    buffer = io.BytesIO()
+    th.save({key: tensor.detach().cpu() for key, tensor in tensors.items()}, buffer)
+    return buffer.getvalue()
+
+
+def save_weights(model: BaseAlgorithm, path: str | os.PathLike[str]) -> Path:
+    """Write ``model`` as a weights-only zip (JSON config + tensor dicts) that :func:`load_weights` reads without pickle.
+
+    :param model: a model of one of :func:`weights_algorithms`.
+    :param path: the file to write (atomically; no suffix is added).
+    :return: the written path.
+    """
+    config = json.dumps(weights_config(model), indent=1)
+    policy = _tensor_bytes(model.policy.state_dict())
+    variables = _tensor_bytes({name: recursive_getattr(model, name) for name in model._get_torch_save_params()[1]})
+
+    def write(tmp: Path) -> None:
+        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+            archive.writestr(CONFIG_ENTRY, config)
+            archive.writestr(POLICY_ENTRY, policy)
+            archive.writestr(VARIABLES_ENTRY, variables)
+
+    return atomic_write(path, write)
+
+
+def _read_tensors(archive: zipfile.ZipFile, entry: str, name: str, device: th.device | str) -> dict[str, th.Tensor]:
+    try:
+        tensors = th.load(io.BytesIO(archive.read(entry)), map_location=device, weights_only=True)
+    except Exception as error:  # torch raises UnpicklingError, RuntimeError, ... for anything but plain tensor data
+        raise ValueError(f"{name}: {entry} is not a plain tensor dict (refused without unpickling): {error}") from error
+    if not isinstance(tensors, dict) or not all(
+        isinstance(key, str) and isinstance(value, th.Tensor) for key, value in tensors.items()
+    ):
+        raise ValueError(f"{name}: {entry} must hold a dict of named tensors")
+    return tensors
+
+
+def _read_config(archive: zipfile.ZipFile, name: str) -> dict[str, Any]:
+    try:
+        config = json.loads(archive.read(CONFIG_ENTRY).decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ValueError(f"{name}: {CONFIG_ENTRY} is not valid JSON: {error}") from error
+    if not isinstance(config, dict) or config.get("format") != WEIGHTS_FORMAT:
+        raise ValueError(f"{name}: {CONFIG_ENTRY} is not a {WEIGHTS_FORMAT} config")
+    if config.get("version") != WEIGHTS_VERSION:
+        raise ValueError(f"{name}: weights format version {config.get('version')!r}, this code reads {WEIGHTS_VERSION}")
+    return config
+
+
+def load_weights(path: str | os.PathLike[str], env: Any = None, device: th.device | str = "cpu") -> BaseAlgorithm:
+    """Rebuild a model from a :func:`save_weights` file; nothing in the file is unpickled or executed.
+
+    :param path: the weights file.
+    :param env: optional env (its spaces must match the stored ones); without it the model can ``predict`` only.
+    :param device: device of the rebuilt model.
+    :return: the model, with its policy weights and pytorch variables (entropy coefficient, ...) loaded.
+    """
+    name = str(path)
+    entries = _check_zip_entries(Path(path), name, ())
+    if CONFIG_ENTRY not in entries or POLICY_ENTRY not in entries:
+        hint = " (an SB3 model zip: load it with the algorithm's load, trusted files only)" if "data" in entries else ""
+        raise ValueError(f"{name} is not a weights file: it needs {CONFIG_ENTRY} and {POLICY_ENTRY}{hint}")
+    with zipfile.ZipFile(path) as archive:
+        config = _read_config(archive, name)
+        policy_state = _read_tensors(archive, POLICY_ENTRY, name, device)
+        variables = _read_tensors(archive, VARIABLES_ENTRY, name, device) if VARIABLES_ENTRY in entries else {}
+
+    algorithms = _algorithms()
+    cls = algorithms.get(config.get("algorithm"))  # type: ignore[arg-type]
+    if cls is None:
+        raise ValueError(f"{name}: unknown algorithm {config.get('algorithm')!r}; supported: {sorted(algorithms)}")
+    policy = config.get("policy")
+    if policy not in cls.policy_aliases:
+        raise ValueError(f"{name}: {cls.__name__} has no policy alias {policy!r} ({sorted(cls.policy_aliases)})")
+    hyperparameters = config.get("hyperparameters", {})
+    unknown = set(hyperparameters) - _hyperparameter_names(cls) if isinstance(hyperparameters, dict) else {"<not a dict>"}
+    if unknown:
+        raise ValueError(f"{name}: unknown {cls.__name__} hyperparameters {sorted(unknown)}")
+    observation_space = _decode_space(config.get("observation_space"))
+    action_space = _decode_space(config.get("action_space"))
+    policy_kwargs = _decode_policy_kwargs(config.get("policy_kwargs", {}))
+
+    model = cls(policy=policy, env=env, device=device, policy_kwargs=policy_kwargs, _init_setup_model=False)
+    if env is None:
+        model.observation_space, model.action_space, model.n_envs = observation_space, action_space, 1
+    else:
+        check_for_correct_spaces(model.env, observation_space, action_space)
+    # SB3 tuples (train_freq) arrive as JSON lists; SB3 accepts tuples wherever it takes a top-level sequence.
+    model.__dict__.update({key: tuple(value) if isinstance(value, list) else value
+                           for key, value in hyperparameters.items()})
+    model._setup_model()
+    try:
+        model.policy.load_state_dict(policy_state)
+    except RuntimeError as error:
+        raise ValueError(f"{name}: the weights do not fit the architecture of the config: {error}") from error
+    expected = set(model._get_torch_save_params()[1])
+    if set(variables) - expected:
+        raise ValueError(f"{name}: unexpected variables {sorted(set(variables) - expected)}")
+    for key, tensor in variables.items():
+        recursive_setattr(model, f"{key}.data", tensor)
+    return model
