@@ -33,7 +33,7 @@ def _construct_tuple(loader: yaml.Loader, node: yaml.Node) -> tuple:
 def _construct_ordered_dict(loader: yaml.Loader, node: yaml.Node) -> OrderedDict:
     # yaml.dump writes OrderedDict(items) as ``!!python/object/apply:collections.OrderedDict [[[key, value], ...]]``.
     if not isinstance(node, yaml.SequenceNode):
-        raise yaml.constructor.ConstructorError(None, None, "expected the argument list of an OrderedDict", node.start_mark)
+        raise yaml.constructor.ConstructorError(None, None, "expected OrderedDict's argument list", node.start_mark)
     args = loader.construct_sequence(node, deep=True)
     if len(args) > 1:
         raise yaml.constructor.ConstructorError(None, None, "OrderedDict takes at most one argument", node.start_mark)

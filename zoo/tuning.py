@@ -6,14 +6,29 @@ the zoo's generic ones: they cover what is sensible for the 15-D / 9-D three-arm
 
 Sampled ``policy_kwargs`` are *merged into* the YAML's ``policy_kwargs`` by :mod:`zoo.experiment` (the zoo replaces
 them), so a YAML ``activation_fn`` or custom policy argument survives tuning.
+
+Studies resume across worker restarts: each trial is tagged with its worker (host, pid and process start), and
+:func:`recover_stale_trials` fails and re-queues the RUNNING trials whose worker is gone; RDB storages opened by
+:func:`open_storage` also use Optuna's heartbeats, which cover workers on other hosts.
 """
 
 from __future__ import annotations
 
 import inspect
+import os
+import socket
+import time
+import uuid
+import warnings
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
 from typing import Any, Callable
 
 import optuna
+from optuna.exceptions import UpdateFinishedTrialError
+from optuna.storages._heartbeat import is_heartbeat_enabled
+from optuna.trial import TrialState
 from torch import nn
 
 Sampler = Callable[[optuna.Trial, int, int, dict], dict[str, Any]]
@@ -139,3 +154,181 @@ def make_ppo_sampler(algo: str, algo_class: type | None) -> Sampler:
         return convert(params)
 
     return sample
+
+
+# --- resumable studies: storages, worker identity, recovery of trials left RUNNING by dead workers ---
+
+#: Trial user attribute naming the worker process that runs it (see :func:`worker_id`).
+WORKER_ATTR = "worker"
+#: Trial user attribute of a re-queued trial: the number of the stale trial it retries.
+RETRY_OF_ATTR = "retry_of"
+#: Heartbeat period (s) of RDB storages; Optuna fails a RUNNING trial after ``grace_period`` without a heartbeat.
+HEARTBEAT_INTERVAL_S = 60
+#: An untagged RUNNING trial older than this (s) is orphaned: every vafn worker tags its trial as soon as it starts.
+UNTAGGED_GRACE_S = 60.0
+#: A process that started this long (s) after a trial cannot be the worker that runs it (clock granularity margin).
+_START_MARGIN_S = 0.5
+_NONCE = uuid.uuid4().hex[:8]
+
+
+@dataclass(frozen=True)
+class WorkerTag:
+    """A parsed worker tag: ``host:pid:start:nonce`` (``start``/``nonce`` are None in the older ``host:pid`` form)."""
+
+    host: str
+    pid: int
+    start: str | None = None
+    nonce: str | None = None
+
+    @classmethod
+    def parse(cls, tag: str) -> WorkerTag | None:
+        """The tag's fields, or None if ``tag`` is not a worker tag."""
+        parts = tag.rsplit(":", 3)
+        if len(parts) == 4 and parts[0] and parts[1].isdigit():
+            return cls(parts[0], int(parts[1]), parts[2] or None, parts[3])
+        host, _, pid = tag.rpartition(":")
+        return cls(host, int(pid)) if host and pid.isdigit() else None
+
+
+def _proc_stat_fields(pid: int) -> list[str] | None:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return stat[stat.rindex(")") + 2 :].split()  # the command name may contain spaces and parentheses
+
+
+def _boot_id() -> str:
+    try:
+        return Path("/proc/sys/kernel/random/boot_id").read_text().strip()[:8]
+    except OSError:
+        return ""
+
+
+def process_start_token(pid: int) -> str | None:
+    """``<boot id>-<start ticks>`` of a live process (fixed for its life, unique per boot); None without /proc."""
+    fields = _proc_stat_fields(pid)
+    return f"{_boot_id()}-{fields[19]}" if fields else None
+
+
+def _process_start_time(pid: int) -> float | None:
+    """Wall-clock start (epoch seconds) of a live process, None where /proc is absent."""
+    fields = _proc_stat_fields(pid)
+    if not fields:
+        return None
+    try:
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+    except OSError:
+        return None
+    return time.time() - uptime + int(fields[19]) / os.sysconf("SC_CLK_TCK")
+
+
+def worker_id() -> str:
+    """``host:pid:start:nonce`` of this process; start token and nonce tell it from a later process with its pid."""
+    return f"{socket.gethostname()}:{os.getpid()}:{process_start_token(os.getpid()) or ''}:{_NONCE}"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _tagged_owner_alive(owner: WorkerTag, started: datetime | None) -> bool:
+    """Whether a local worker (same host) still runs a trial started at ``started``."""
+    if not _pid_alive(owner.pid):
+        return False
+    if owner.start is not None:
+        current = process_start_token(owner.pid)
+        if current is not None:
+            return current == owner.start
+    if owner.nonce is not None and owner.pid == os.getpid():
+        return False  # a tag with our pid that is not ours was written by an earlier process with this pid
+    # Older host:pid tags: a process that started after the trial cannot be the one running it.
+    process_start = _process_start_time(owner.pid)
+    return process_start is None or started is None or process_start <= started.timestamp() + _START_MARGIN_S
+
+
+def is_stale(trial: optuna.trial.FrozenTrial, untagged_grace_s: float = UNTAGGED_GRACE_S) -> bool:
+    """Whether a RUNNING trial's worker is known to be gone (trials of other hosts are never judged here)."""
+    tag = str(trial.user_attrs.get(WORKER_ATTR, ""))
+    if not tag:
+        started = trial.datetime_start
+        return started is not None and (datetime.now() - started).total_seconds() > untagged_grace_s
+    owner = WorkerTag.parse(tag)
+    if owner is None or owner.host != socket.gethostname() or tag == worker_id():
+        return False
+    return not _tagged_owner_alive(owner, trial.datetime_start)
+
+
+def _heartbeat_kwargs(heartbeat_interval: int, grace_period: int | None, max_retry: int | None) -> dict[str, Any]:
+    """RDBStorage's heartbeat arguments under the installed Optuna's names (renamed in 4.9)."""
+    parameters = inspect.signature(optuna.storages.RDBStorage.__init__).parameters
+    retry_class = getattr(optuna.storages, "RetryHeartbeatStaleTrialCallback", None)
+    if retry_class is None or "heartbeat_stale_trial_callback" not in parameters:
+        retry_class, callback_name = optuna.storages.RetryFailedTrialCallback, "failed_trial_callback"
+    else:
+        callback_name = "heartbeat_stale_trial_callback"
+    return {
+        "heartbeat_interval": heartbeat_interval,
+        "grace_period": grace_period,
+        callback_name: retry_class(max_retry=max_retry),
+    }
+
+
+def open_storage(
+    storage: str,
+    heartbeat_interval: int | None = HEARTBEAT_INTERVAL_S,
+    grace_period: int | None = None,
+    max_retry: int | None = 3,
+) -> optuna.storages.BaseStorage:
+    """A ``*.log`` path as a journal-file storage, anything else as an RDB URL with Optuna heartbeats.
+
+    :param storage: journal file path or RDB URL (sqlite/postgresql/mysql).
+    :param heartbeat_interval: seconds between heartbeats of a running trial (RDB only; None disables them). A trial
+        without a heartbeat for ``grace_period`` (default ``2 * heartbeat_interval``) is failed by the next worker
+        that starts a trial, and re-queued up to ``max_retry`` times, whichever host it ran on.
+    """
+    if storage.endswith(".log"):
+        Path(storage).parent.mkdir(parents=True, exist_ok=True)
+        return optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(storage))
+    if heartbeat_interval is None:
+        return optuna.storages.RDBStorage(storage)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        return optuna.storages.RDBStorage(storage, **_heartbeat_kwargs(heartbeat_interval, grace_period, max_retry))
+
+
+def recover_trial(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> bool:
+    """Fail a stale RUNNING trial and re-queue its parameters; False if another worker got there first."""
+    try:
+        if not study._storage.set_trial_state_values(trial._trial_id, TrialState.FAIL):
+            return False
+    except UpdateFinishedTrialError:  # another worker recovered (or the owner finished) it since our snapshot
+        return False
+    study.enqueue_trial(trial.params, user_attrs={RETRY_OF_ATTR: trial.number})
+    return True
+
+
+def recover_stale_trials(
+    storage: str | optuna.storages.BaseStorage, study_name: str, untagged_grace_s: float = UNTAGGED_GRACE_S
+) -> list[int]:
+    """Fail the RUNNING trials of dead local workers, re-queue their parameters and return their numbers.
+
+    Safe to run from several workers at once: each stale trial is recovered (and re-queued) exactly once. Trials of
+    other hosts are left alone; an RDB storage from :func:`open_storage` covers them with heartbeats.
+    """
+    if isinstance(storage, str):
+        storage = open_storage(storage)
+    try:
+        study = optuna.load_study(study_name=study_name, storage=storage)
+    except KeyError:  # the study does not exist yet
+        return []
+    if is_heartbeat_enabled(study._storage):
+        untagged_grace_s = float("inf")  # untagged trials have heartbeats, Optuna fails them when they stop
+    stale = [t for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)) if is_stale(t, untagged_grace_s)]
+    return [trial.number for trial in stale if recover_trial(study, trial)]
