@@ -1,48 +1,118 @@
 """Success and collision rates of the ScriptedController: the feasibility proof and ceiling of every learning curve.
 
-    python benchmarks/scripted_ceiling.py [--episodes 200]
+    python benchmarks/scripted_ceiling.py [--env-id VAFN/MultiArmReach-v1] [--n-arms 4] [--robot panda] [--n-tasks 200]
 
-Instructions are drawn from the test split over lengths 1..10 (all difficulties), for each task family.
+The instructions are the held-out test tasks of :class:`vafn_gym.InstructionBenchmark` (lengths 1..10, all
+difficulties), each run once with :func:`vafn_gym.run_episode`, so the numbers compare with every learning curve.
+``--n-arms`` and ``--robot`` are passed to ``gym.make`` only when given (the ThreeArm IDs fix three KUKA arms).
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
+import math
+import os
 import time
-from collections import defaultdict
+from typing import Any
 
-import gymnasium as gym
-from tqdm import tqdm
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-import vafn_gym  # noqa: F401
-from vafn_gym import ScriptedController
+import numpy as np  # noqa: E402
+
+import vafn_gym  # noqa: E402,F401
+from vafn_gym import InstructionBenchmark, ScriptedController, difficulty_of, run_episode  # noqa: E402
+
+Z_95 = 1.959963984540054
+
+
+def wilson_interval(successes: float, n: int, z: float = Z_95) -> tuple[float, float]:
+    """Wilson score interval of a binomial rate (sensible at 0 % and 100 %, unlike the normal approximation)."""
+    if n == 0:
+        return (0.0, 1.0)
+    rate = successes / n
+    centre = (rate + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(rate * (1 - rate) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def env_kwargs_from(args: argparse.Namespace) -> dict[str, Any]:
+    """The ``gym.make`` kwargs given on the command line."""
+    kwargs: dict[str, Any] = {}
+    if args.n_arms is not None:
+        kwargs["n_arms"] = args.n_arms
+    if args.robot is not None:
+        kwargs["robot"] = args.robot
+    if args.targets is not None:
+        kwargs["targets"] = args.targets
+    if args.observe_goal:
+        kwargs["observe_goal"] = True
+    return kwargs
+
+
+def run(env_id: str, env_kwargs: dict[str, Any], n_tasks: int, seed: int) -> list[dict[str, Any]]:
+    """One scripted episode per held-out test task; one row per task."""
+    benchmark = InstructionBenchmark(env_id, 1, 10, n_test=n_tasks, seed=seed, env_kwargs=env_kwargs)
+    env = benchmark.make_env()
+    controller = ScriptedController.for_env(env)
+    rows = []
+    try:
+        for index, task in enumerate(benchmark.test_tasks):
+            env.unwrapped.set_task(task)
+            row = run_episode(controller, env, benchmark.episode_seed(index))
+            rows.append({"task_index": index, "task": task.to_code(), "length": len(task), **row})
+    finally:
+        env.close()
+    return rows
+
+
+def summary_line(label: str, rows: list[dict[str, Any]]) -> str:
+    """One markdown row: episodes, success and collision rates with 95 % Wilson CIs, mean steps."""
+    n = len(rows)
+    success = sum(r["success"] for r in rows)
+    collision = sum(r["collision"] for r in rows)
+    s_low, s_high = wilson_interval(success, n)
+    c_low, c_high = wilson_interval(collision, n)
+    steps = np.mean([r["steps"] for r in rows]) if rows else float("nan")
+    return (
+        f"| {label} | {n} | {success / n:.3f} [{s_low:.3f}, {s_high:.3f}] | "
+        f"{collision / n:.3f} [{c_low:.3f}, {c_high:.3f}] | {steps:.0f} |"
+    )
 
 
 def main() -> None:
-    """Run the controller and print a table per task family and difficulty."""
+    """Run the controller on the benchmark's test tasks and print a table per difficulty."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--episodes", type=int, default=200)
-    parser.add_argument("--env-ids", nargs="+", default=["VAFN/ThreeArmReach-v0", "VAFN/ThreeArmReachHidden-v0"])
+    parser.add_argument("--env-id", default="VAFN/ThreeArmReach-v1")
+    parser.add_argument("--n-arms", type=int, default=None)
+    parser.add_argument("--robot", default=None, choices=sorted(vafn_gym.ROBOTS))
+    parser.add_argument("--targets", default=None, choices=vafn_gym.TARGET_MODES)
+    parser.add_argument("--observe-goal", action="store_true")
+    parser.add_argument("--n-tasks", type=int, default=200)
+    parser.add_argument("--seed", type=int, default=1234, help="seed of the held-out test set")
+    parser.add_argument("--csv", default=None, help="also write one row per episode to this CSV file")
     args = parser.parse_args()
-    controller = ScriptedController()
-    print("| env | difficulty | episodes | success | collision | mean steps |")
-    print("|---|---|---|---|---|---|")
-    for env_id in args.env_ids:
-        env = gym.make(env_id, split="test")
-        stats: dict[str, list[tuple[bool, bool, int]]] = defaultdict(list)
-        start = time.perf_counter()
-        for seed in tqdm(range(args.episodes), desc=env_id, leave=False):
-            info = controller.run_episode(env, seed)
-            stats[info["instruction"].difficulty].append((info["is_success"], info["collided"], env.unwrapped.steps))
-        stats["all"] = [row for rows in list(stats.values()) for row in rows]
-        for difficulty in ("easy", "medium", "hard", "all"):
-            rows = stats.get(difficulty, [])
-            if rows:
-                n = len(rows)
-                print(f"| {env_id} | {difficulty} | {n} | {sum(r[0] for r in rows) / n:.3f} | "
-                      f"{sum(r[1] for r in rows) / n:.3f} | {sum(r[2] for r in rows) / n:.0f} |")
-        print(f"<!-- {env_id}: {time.perf_counter() - start:.0f} s -->")
-        env.close()
+    env_kwargs = env_kwargs_from(args)
+    start = time.perf_counter()
+    rows = run(args.env_id, env_kwargs, args.n_tasks, args.seed)
+    elapsed = time.perf_counter() - start
+    label = f"{args.env_id} {env_kwargs or ''}".strip()
+    print(f"# {label}: {len(rows)} test tasks in {elapsed:.0f} s")
+    print("| difficulty | episodes | success [95 % CI] | collision [95 % CI] | mean steps |")
+    print("|---|---|---|---|---|")
+    for difficulty in ("easy", "medium", "hard"):
+        subset = [r for r in rows if difficulty_of(r["length"]) == difficulty]
+        if subset:
+            print(summary_line(difficulty, subset))
+    print(summary_line("all", rows))
+    failures = [r for r in rows if not r["success"] or r["collision"]]
+    for row in failures[:10]:
+        print(f"  failed task {row['task_index']} ({row['task']}): success={row['success']} collision={row['collision']}")
+    if args.csv:
+        with open(args.csv, "w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
 
 
 if __name__ == "__main__":

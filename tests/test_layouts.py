@@ -1,0 +1,110 @@
+"""Robot specs and arm layouts: geometry, slices, feasibility checks, and every robot standing where its layout says."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from vafn_gym import KUKA_IIWA, PANDA, ROBOTS, XARM6, ArmLayout, RobotSpec
+from vafn_gym.constants import WORKSPACE_HIGH, WORKSPACE_LOW
+from vafn_gym.robots import get_robot
+
+
+def test_robot_registry_and_lookup():
+    assert set(ROBOTS) == {"kuka", "panda", "xarm"}
+    assert get_robot("panda") is PANDA and get_robot(XARM6) is XARM6
+    with pytest.raises(ValueError, match="robot must be one of"):
+        get_robot("ur5")
+    assert len(KUKA_IIWA.joints) == 7 and len(XARM6.joints) == 6
+    assert KUKA_IIWA.joint_forces.shape == (7,)
+
+
+def test_robot_spec_rejects_a_rest_pose_of_the_wrong_length():
+    with pytest.raises(ValueError, match="rest_pose has 2 angles for 3 joints"):
+        RobotSpec(name="toy", urdf="toy.urdf", joints=(0, 1, 2), ee_link=2, joint_force=1.0, rest_pose=(0.0, 0.0))
+
+
+@pytest.mark.parametrize("n_arms", [2, 3, 4, 6, 8])
+def test_layout_geometry(n_arms):
+    layout = ArmLayout(n_arms=n_arms)
+    assert layout.arm_ids == tuple(range(1, n_arms + 1))
+    assert len(layout.arm_pairs) == n_arms * (n_arms - 1) // 2
+    assert layout.action_dim == 3 * n_arms
+    covered = np.concatenate([np.arange(3 * n_arms)[layout.action_slice(arm)] for arm in layout.arm_ids])
+    assert np.array_equal(covered, np.arange(3 * n_arms))
+    for arm in layout.arm_ids:
+        base, home, target = layout.base_position(arm), layout.home_point(arm), layout.default_target(arm)
+        assert np.isclose(np.linalg.norm(base[:2]), layout.base_radius) and base[2] == 0.0
+        # The home point and the default target lie on the ray from the centre toward the base.
+        for point in (home, target):
+            assert np.isclose(base[0] * point[1] - base[1] * point[0], 0.0, atol=1e-12) and np.dot(base[:2], point[:2]) > 0
+        assert np.linalg.norm(home[:2]) > layout.shared_radius  # homes are clear of the shared region
+    yaws = [layout.base_yaw(arm) for arm in layout.arm_ids]
+    assert np.allclose(np.diff(yaws), 2 * np.pi / n_arms)
+
+
+def test_shared_targets_stay_in_the_shared_region():
+    layout = ArmLayout(n_arms=4, shared_radius=0.1, shared_z_range=(0.25, 0.3))
+    rng = np.random.default_rng(0)
+    points = np.array([layout.sample_shared_target(rng) for _ in range(500)])
+    assert np.all(np.linalg.norm(points[:, :2], axis=1) <= 0.1 + 1e-12)
+    assert np.all((points[:, 2] >= 0.25) & (points[:, 2] <= 0.3))
+    assert np.all(points >= WORKSPACE_LOW) and np.all(points <= WORKSPACE_HIGH)
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, fragment",
+    [
+        (dict(n_arms=1), ValueError, "n_arms must be between 2 and 8"),
+        (dict(n_arms=9), ValueError, "n_arms must be between 2 and 8"),
+        (dict(n_arms=True), TypeError, "n_arms must be an integer"),
+        (dict(n_arms=3.0), TypeError, "n_arms must be an integer"),
+        (dict(base_radius=float("nan")), ValueError, "base_radius"),
+        (dict(home_height=-0.1), ValueError, "home_height"),
+        (dict(shared_z_range=(0.5, 0.2)), ValueError, "shared_z_range"),
+    ],
+)
+def test_layout_rejects_bad_arguments(kwargs, error, fragment):
+    with pytest.raises(error, match=fragment):
+        ArmLayout(**kwargs)
+
+
+@pytest.mark.parametrize(
+    "layout, robot, fragment",
+    [
+        (ArmLayout(n_arms=8, base_radius=0.3), KUKA_IIWA, "stand 0.23 m apart"),
+        (ArmLayout(n_arms=3, base_radius=0.6), XARM6, "xarm reaches 0.68 m"),
+        (ArmLayout(n_arms=3, base_radius=0.75), KUKA_IIWA, "kuka reaches 0.8 m"),
+        (ArmLayout(n_arms=6, base_radius=0.4), PANDA, "home points 0.15 m apart"),
+    ],
+)
+def test_infeasible_layouts_are_refused_clearly(layout, robot, fragment):
+    with pytest.raises(ValueError, match=fragment):
+        layout.check_feasible(robot)
+    with pytest.raises(ValueError, match=fragment):
+        gym.make("VAFN/MultiArmReach-v1", layout=layout, robot=robot.name)
+
+
+def test_every_robots_default_layout_is_feasible_up_to_seven_arms():
+    for robot in ROBOTS.values():
+        for n_arms in range(2, 8):
+            ArmLayout(n_arms=n_arms, base_radius=robot.base_radius).check_feasible(robot)
+
+
+def test_layout_must_be_an_arm_layout():
+    with pytest.raises(TypeError, match="layout must be an ArmLayout"):
+        gym.make("VAFN/MultiArmReach-v1", layout={"n_arms": 3})
+
+
+@pytest.mark.parametrize("robot", sorted(ROBOTS))
+def test_arms_stand_on_their_layout_and_rest_near_home(robot):
+    layout = ArmLayout(n_arms=4, base_radius=ROBOTS[robot].base_radius, base_yaw0=0.3)
+    env = gym.make("VAFN/MultiArmReach-v1", layout=layout, robot=robot)
+    base = env.unwrapped
+    try:
+        assert base.n_arms == 4 and base.robot is ROBOTS[robot]
+        for arm_id, arm in base.arms.items():
+            assert np.allclose(arm.base_position, layout.base_position(arm_id))
+            assert np.linalg.norm(arm.home - layout.home_point(arm_id)) < 0.02  # IK leaves ~1 cm at most
+            assert np.allclose(arm.ee_position, arm.home, atol=1e-9)
+    finally:
+        env.close()
