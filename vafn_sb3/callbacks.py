@@ -107,7 +107,6 @@ class MetaEvalCallback(BaseCallback):
     :param k_values: adaptation-step counts to evaluate (0 = unadapted).
     :param n_tasks: held-out instructions per meta-evaluation (a fixed set, the same every time).
     :param n_support: support transitions collected before adapting.
-    :param split: split the held-out instructions come from ("test" or "validation").
     :param min_length: shortest held-out instruction.
     :param max_length: longest held-out instruction.
     :param n_eval_episodes: evaluation episodes per task and K.
@@ -123,7 +122,6 @@ class MetaEvalCallback(BaseCallback):
         k_values: Sequence[int] = (0, 1, 5),
         n_tasks: int = 3,
         n_support: int = 200,
-        split: str = "test",
         min_length: int = 1,
         max_length: int = 3,
         n_eval_episodes: int = 1,
@@ -142,7 +140,6 @@ class MetaEvalCallback(BaseCallback):
         self.k_values = sorted(int(k) for k in k_values)
         self.n_tasks = n_tasks
         self.n_support = n_support
-        self.split = split
         self.min_length = min_length
         self.max_length = max_length
         self.n_eval_episodes = n_eval_episodes
@@ -154,12 +151,13 @@ class MetaEvalCallback(BaseCallback):
         self.rows: list[dict[str, Any]] = []
 
     def _init_callback(self) -> None:
-        from vafn_gym.tasks import TaskSampler, env_task_family
+        from vafn_gym.benchmarks import InstructionBenchmark
 
         self.env_id = self.env_id or _training_env_id(self)
-        family = env_task_family(self.env_id, self.env_kwargs)
-        sampler = TaskSampler(self.split, family, self.min_length, self.max_length, seed=self.seed)
-        self.tasks = sampler.fixed_set(self.n_tasks, seed=self.seed)
+        benchmark = InstructionBenchmark(
+            self.env_id, self.min_length, self.max_length, n_test=self.n_tasks, seed=self.seed, env_kwargs=self.env_kwargs
+        )
+        self.tasks = benchmark.test_tasks
         if self.log_path is None and self.logger is not None and self.logger.dir:
             self.log_path = self.logger.dir
 

@@ -1,11 +1,11 @@
-"""The online adaptive controller (the paper's Algorithm 1) over the queue-driven ``VAFN/ThreeArmStream-v0``.
+"""The online adaptive controller (the paper's Algorithm 1) over the queue-driven ``VAFN/ThreeArmStream-v1``.
 
 Loop, one control step at a time:
 
 1. no instruction running: ask the stream for the next one (``start_next``; malformed entries are recorded in the
    stream's ``errors`` and skipped). Queue empty: **hold** (zero velocity for every arm) and step;
 2. an instruction was dequeued: **adapt** the model to it. The support set is collected on a private *twin*
-   :class:`~vafn_gym.envs.ThreeArmEnv` (same task family and reward) after ``set_task(instruction)``, so the real arms
+   :class:`~vafn_gym.envs.MultiArmEnv` (the stream's own world, task and reward settings) after ``set_task(instruction)``, so the real arms
    never execute exploratory support actions and adaptation finishes before the first real action. The twin is a
    simulator of the same world: this assumes the task (including hidden targets) can be simulated, as in meta-training;
 3. **execute** the adapted policy (deterministic) until the stream reports the instruction completed or timed out;
@@ -26,8 +26,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from vafn_gym.constants import ACTION_DIM, ARM_IDS
-from vafn_gym.envs import ThreeArmEnv, ThreeArmStreamEnv
+from vafn_gym.envs import MultiArmEnv, MultiArmStreamEnv
 from vafn_gym.queue import QueuedInstruction
 
 __all__ = ["InstructionLog", "OnlineController"]
@@ -79,7 +78,7 @@ class OnlineController:
 
     :param model: an :class:`~vafn_sb3.common.adaptation.Adaptable` (e.g. :class:`~vafn_sb3.MAMLSAC`); with ``k=0`` or
         a model without ``adapt`` (any ``predict``-able policy) the unadapted policy executes every instruction.
-    :param env: a ``VAFN/ThreeArmStream-v0`` env (possibly wrapped) created with ``auto_dequeue=False``.
+    :param env: a ``VAFN/ThreeArmStream-v1`` env (possibly wrapped) created with ``auto_dequeue=False``.
     :param k: adaptation rounds per instruction (default: the model's ``inner_steps``, 0 for models without ``adapt``).
     :param n_support: support transitions per instruction, collected on the twin env. The support rollout dominates the
         reaction time (about 1.1 ms per transition on one unloaded thread): 25 keeps dequeue -> first action under
@@ -93,8 +92,8 @@ class OnlineController:
         deterministic: bool = True,
     ) -> None:
         stream = env.unwrapped
-        if not isinstance(stream, ThreeArmStreamEnv):
-            raise TypeError(f"env must be a ThreeArmStreamEnv (VAFN/ThreeArmStream-v0), got {type(stream).__name__}")
+        if not isinstance(stream, MultiArmStreamEnv):
+            raise TypeError(f"env must be a MultiArmStreamEnv (VAFN/ThreeArmStream-v1), got {type(stream).__name__}")
         if stream.auto_dequeue:
             raise ValueError("create the stream env with auto_dequeue=False: the controller dequeues itself")
         can_adapt = callable(getattr(model, "adapt", None))
@@ -110,8 +109,8 @@ class OnlineController:
         self.n_support = int(n_support)
         self.seed = int(seed)
         self.deterministic = deterministic
-        self.twin = ThreeArmEnv(task_family=stream.task_family, reward_type=stream.reward_type) if k > 0 else None
-        self.hold_action = np.zeros(ACTION_DIM, dtype=np.float32)
+        self.twin = MultiArmEnv(**stream.world_kwargs) if k > 0 else None
+        self.hold_action = np.zeros(stream.action_space.shape, dtype=np.float32)
         self.log: list[InstructionLog] = []
         self.errors: list[str] = []
         #: Per-step trace for plots: stream step, distances of the arms to their current targets, running sequence.
@@ -218,35 +217,4 @@ class OnlineController:
             writer.writeheader()
             for entry in self.log:
                 writer.writerow(asdict(entry))
-        return path
-
-    def plot(self, path: str | Path) -> Path:
-        """Plot each arm's distance to its current target over the stream steps, instruction phases shaded and labelled."""
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        steps = np.asarray(self.trace["step"])
-        distances = np.asarray(self.trace["distances"]).reshape(len(steps), len(ARM_IDS))
-        fig, ax = plt.subplots(figsize=(12, 4))
-        for column, arm in enumerate(ARM_IDS):
-            ax.plot(steps, distances[:, column], lw=1.0, label=f"arm {arm}")
-        top = float(distances.max()) if len(steps) else 1.0
-        for index, entry in enumerate(self.log):
-            if entry.start_step < 0:
-                continue
-            end = entry.completion_step if entry.completion_step >= 0 else (int(steps[-1]) if len(steps) else entry.start_step)
-            colour = "tab:green" if entry.success else "tab:red"
-            ax.axvspan(entry.start_step, end, color=colour, alpha=0.12 if index % 2 else 0.2, lw=0)
-            ax.text(entry.start_step, top, f"#{entry.sequence} [{entry.instruction}]", fontsize=7, va="top", rotation=90)
-        ax.set_xlabel("stream step")
-        ax.set_ylabel("distance to current target (m)")
-        ax.set_title("Online control: green = instruction succeeded, red = failed/timeout, white = holding")
-        ax.legend(loc="upper right")
-        fig.tight_layout()
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
         return path

@@ -6,7 +6,7 @@ Examples::
     python zoo/online_control.py --policy scripted --steps 1500 --schedule "0:2,3,1;10:1,2;600:3,1,2" --out runs/online
 
     # a trained MAML-SAC, random (Poisson) arrivals of held-out test instructions, K=5 adaptation rounds each
-    python zoo/online_control.py --model runs/model.zip --task-family hidden_targets --max-length 2 --split test \\
+    python zoo/online_control.py --model runs/model.zip --targets per_arm --max-length 2 --split test \\
         --poisson-rate 0.004 --steps 3000 --k 5 --out runs/online
 """
 
@@ -21,10 +21,11 @@ import numpy as np
 import torch
 
 import vafn_gym  # noqa: F401  (registers the env IDs)
-from vafn_gym import ScriptedController
+from vafn_gym import TARGET_MODES, ScriptedController
 from vafn_gym.queue import PoissonArrivals, ScheduledArrivals
 from vafn_sb3.maml_sac import MAMLSAC
 from vafn_sb3.online import OnlineController
+from zoo.plot import plot_online_distances
 
 
 class RandomPolicy:
@@ -67,7 +68,7 @@ def main() -> None:
     arrivals.add_argument("--schedule", type=parse_schedule, help="scripted arrivals 'STEP:INSTR;STEP:INSTR'")
     arrivals.add_argument("--poisson-rate", type=float, help="random arrivals per step, instructions from --split")
     parser.add_argument("--steps", type=int, default=2000, help="control steps to run")
-    parser.add_argument("--task-family", default="order", choices=["order", "hidden_targets"])
+    parser.add_argument("--targets", default="default", choices=list(TARGET_MODES), help="where waypoint targets come from")
     parser.add_argument("--split", default="test", choices=["train", "validation", "test"])
     parser.add_argument("--max-length", type=int, default=3)
     parser.add_argument("--k", type=int, help="adaptation rounds per instruction (default: the model's inner_steps)")
@@ -78,7 +79,7 @@ def main() -> None:
     torch.set_num_threads(1)
 
     env = gym.make(
-        "VAFN/ThreeArmStream-v0", arrivals=None, auto_dequeue=False, horizon=args.steps, task_family=args.task_family,
+        "VAFN/ThreeArmStream-v1", arrivals=None, auto_dequeue=False, horizon=args.steps, targets=args.targets,
         split=args.split, max_length=args.max_length,
     )
     stream = env.unwrapped
@@ -89,14 +90,14 @@ def main() -> None:
     if args.model is not None:
         model = MAMLSAC.load(args.model)
     elif args.policy == "scripted":
-        model = ScriptedController()
+        model = ScriptedController.for_env(env)
     else:
         model = RandomPolicy(env.action_space, args.seed)
     controller = OnlineController(model, env, k=args.k, n_support=args.n_support, seed=args.seed)
     controller.run(args.steps)
     controller.close()
     csv_path = controller.write_csv(args.out / "online_log.csv")
-    png_path = controller.plot(args.out / "online_distances.png")
+    png_path = plot_online_distances(controller, args.out / "online_distances.png")
 
     log = controller.log
     finished = [entry for entry in log if entry.outcome in ("completed", "timeout")]

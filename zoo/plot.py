@@ -19,7 +19,7 @@ import sys
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
@@ -234,3 +234,36 @@ def main(argv: list[str] | None = None) -> list[Path]:
 
 if __name__ == "__main__":
     sys.exit(0 if main() else 1)
+
+
+def plot_online_distances(controller: Any, path: str | Path) -> Path:
+    """Each arm's distance to its current target over an :class:`~vafn_sb3.OnlineController` run, phases shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    steps = np.asarray(controller.trace["step"])
+    distances = np.asarray(controller.trace["distances"])
+    distances = distances.reshape(len(steps), -1) if len(steps) else np.zeros((0, 1))
+    fig, ax = plt.subplots(figsize=(12, 4))
+    for column in range(distances.shape[1]):
+        ax.plot(steps, distances[:, column], lw=1.0, label=f"arm {column + 1}")
+    top = float(distances.max()) if len(steps) else 1.0
+    for index, entry in enumerate(controller.log):
+        if entry.start_step < 0:
+            continue
+        end = entry.completion_step if entry.completion_step >= 0 else (int(steps[-1]) if len(steps) else entry.start_step)
+        colour = "tab:green" if entry.success else "tab:red"
+        ax.axvspan(entry.start_step, end, color=colour, alpha=0.12 if index % 2 else 0.2, lw=0)
+        ax.text(entry.start_step, top, f"#{entry.sequence} [{entry.instruction}]", fontsize=7, va="top", rotation=90)
+    ax.set_xlabel("stream step")
+    ax.set_ylabel("distance to current target (m)")
+    ax.set_title("Online control: green = instruction succeeded, red = failed/timeout, white = holding")
+    ax.legend(loc="upper right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

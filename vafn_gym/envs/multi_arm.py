@@ -158,6 +158,13 @@ class MultiArmEnv(gym.Env):
         self.action_space = spaces.Box(-1.0, 1.0, shape=(layout.action_dim,), dtype=np.float32)
         self.observation_space = self._make_observation_space()
         self.gated = False
+        #: The settings that define this env's world, task and reward (a twin env is ``MultiArmEnv(**world_kwargs)``).
+        self.world_kwargs: dict[str, Any] = dict(
+            layout=layout, robot=self.robot, targets=self.targets, observe_goal=self.observe_goal,
+            inactive_arms=self.inactive_arms, reward_type=reward_type, reward_kwargs=reward.as_dict(),
+            terminate_on_collision=self.terminate_on_collision, safety_margin=self.safety_margin, n_substeps=n_substeps,
+            split_seed=split_seed,
+        )
 
     @property
     def n_arms(self) -> int:

@@ -19,6 +19,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from vafn_gym.benchmarks import run_episode
 from vafn_gym.instructions import Instruction
 
 __all__ = [
@@ -178,28 +179,6 @@ def collect_support(model: Any, env: gym.Env, task: Instruction | None, n_suppor
     return SupportSet(**{name: np.asarray(values, dtype=np.float32) for name, values in columns.items()})
 
 
-def run_episode(policy: Any, env: gym.Env, seed: int | None, deterministic: bool = True) -> dict[str, float]:
-    """One episode of ``policy`` on ``env``'s current task.
-
-    :param policy: anything with SB3's ``predict``.
-    :param env: a single Gymnasium env.
-    :param seed: reset seed.
-    :param deterministic: use the policy's deterministic action.
-    :return: ``{"return", "success", "collision", "length"}`` (collision: any arm-arm contact in the episode).
-    """
-    obs, _ = env.reset(seed=seed)
-    total, length, collided, success = 0.0, 0, False, False
-    while True:
-        action, _ = policy.predict(obs, deterministic=deterministic)
-        obs, reward, terminated, truncated, info = env.step(action)
-        total += float(reward)
-        length += 1
-        collided |= bool(info.get("collision", False))
-        success = bool(info.get("is_success", False))
-        if terminated or truncated:
-            return {"return": total, "success": float(success), "collision": float(collided), "length": float(length)}
-
-
 def evaluate_adaptation(
     model: Any,
     env_id: str,
@@ -218,8 +197,8 @@ def evaluate_adaptation(
     every :class:`Adaptable`, so curves of different algorithms are comparable.
 
     :param model: an :class:`Adaptable` (also needs ``predict``).
-    :param env_id: registered env ID (e.g. ``"VAFN/ThreeArmReachHidden-v0"``); one env is made and reused.
-    :param tasks: held-out instructions (e.g. ``TaskSampler("test", ...).fixed_set(n)``).
+    :param env_id: registered env ID (e.g. ``"VAFN/ThreeArmReachHidden-v1"``); one env is made and reused.
+    :param tasks: held-out instructions (e.g. ``InstructionBenchmark(env_id).test_tasks``).
     :param n_support: support transitions per adaptation.
     :param k_values: numbers of adaptation steps to evaluate (each >= 0).
     :param n_eval_episodes: deterministic evaluation episodes per (task, k).

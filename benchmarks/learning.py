@@ -1,0 +1,127 @@
+"""Learning benchmark: train an algorithm from its YAML on short train instructions, evaluate on held-out test ones.
+
+    python benchmarks/learning.py --algo sac --env VAFN/ThreeArmReach-v1 --seeds 0 1 2 --steps 50000
+
+Every ``--eval-every`` env steps the policy runs once on ``--n-eval`` held-out test instructions (lengths 1-10, from
+:class:`vafn_gym.InstructionBenchmark`); at the end on all ``--n-test``. Writes ``<out>/<algo>_<env>_curves.csv``
+(one row per seed and evaluation) and ``<out>/<algo>_<env>_summary.json`` (final success / collision / episode length
+with 95 % CIs over seeds, env steps to first cross 0.95, wall and CPU time), and prints them. Training uses one
+torch thread. ``--save DIR`` keeps each seed's final model (SB3 zip) for ``benchmarks/export_pretrained.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO_ROOT))
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import gymnasium as gym  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+import vafn_gym  # noqa: E402,F401  (registers the env IDs)
+from vafn_gym import InstructionBenchmark  # noqa: E402
+from zoo.hyperparams import load_hyperparams  # noqa: E402
+from zoo.plot import confidence_half_width  # noqa: E402
+from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
+
+SUCCESS_TARGET = 0.95
+
+
+def evaluate(model, benchmark: InstructionBenchmark, n_tasks: int) -> dict[str, float]:
+    """Success, collision rate and mean episode steps of ``model`` on the first ``n_tasks`` test instructions."""
+    rows = benchmark.evaluate(model, n_tasks=n_tasks)
+    return {
+        "success": float(np.mean([r["success"] for r in rows])),
+        "collision": float(np.mean([r["collision"] for r in rows])),
+        "episode_steps": float(np.mean([r["steps"] for r in rows])),
+        "waypoint_fraction": float(np.mean([r["waypoints_reached"] / max(r["length"], 1) for r in rows])),
+    }
+
+
+def train_one(args: argparse.Namespace, seed: int, benchmark: InstructionBenchmark) -> tuple[list[dict], object]:
+    """Train one seed; returns its evaluation rows (the last one on every test task) and the model."""
+    kwargs, yaml_steps, policy = load_hyperparams(args.algo, args.env)
+    kwargs.update(args.hyperparams)
+    env = gym.make(args.env, max_length=args.train_max_length, **args.env_kwargs)
+    model = require_algorithm(args.algo)(policy, env, seed=seed, verbose=0, **kwargs)
+    steps = args.steps or yaml_steps
+    rows, wall0, cpu0 = [], time.perf_counter(), time.process_time()
+    with tqdm(total=steps, desc=f"{args.algo} seed {seed}", unit="step") as bar:
+        while model.num_timesteps < steps:
+            before = model.num_timesteps
+            model.learn(min(args.eval_every, steps - model.num_timesteps), reset_num_timesteps=False)
+            bar.update(model.num_timesteps - before)
+            final = model.num_timesteps >= steps
+            wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0  # evaluation time included
+            metrics = evaluate(model, benchmark, args.n_test if final else args.n_eval)
+            rows.append({"seed": seed, "timesteps": model.num_timesteps, "n_tasks": args.n_test if final else args.n_eval,
+                         "wall_s": round(wall, 1), "cpu_s": round(cpu, 1), **metrics})
+            bar.set_postfix(success=f"{metrics['success']:.2f}", collision=f"{metrics['collision']:.2f}")
+    env.close()
+    return rows, model
+
+
+def summarise(rows: list[dict], seeds: list[int]) -> dict:
+    """Final metrics over seeds (mean ± 95 % Student-t CI) and steps to the first evaluation at >= 0.95 success."""
+    finals = [max((r for r in rows if r["seed"] == s), key=lambda r: r["timesteps"]) for s in seeds]
+    summary: dict = {"seeds": seeds, "n_test": finals[0]["n_tasks"]}
+    for key in ("success", "collision", "episode_steps", "wall_s", "cpu_s"):
+        values = np.array([f[key] for f in finals], dtype=np.float64)
+        summary[key] = {"mean": float(values.mean()), "ci95": float(confidence_half_width(values[:, None])[0])}
+    summary["steps_to_success_0.95"] = {
+        str(s): next((r["timesteps"] for r in rows if r["seed"] == s and r["success"] >= SUCCESS_TARGET), None)
+        for s in seeds
+    }
+    return summary
+
+
+def main() -> None:
+    """Parse arguments, train every seed, write the curves and the summary."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--algo", default="sac")
+    parser.add_argument("--env", default="VAFN/ThreeArmReach-v1")
+    parser.add_argument("--env-kwargs", type=json.loads, default={}, help='JSON, e.g. \'{"inactive_arms": "policy"}\'')
+    parser.add_argument("--hyperparams", type=json.loads, default={}, help="JSON overrides of the YAML values")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--steps", type=int, default=None, help="env steps per seed (default: the YAML's n_timesteps)")
+    parser.add_argument("--train-max-length", type=int, default=3, help="longest training instruction")
+    parser.add_argument("--eval-every", type=int, default=10_000)
+    parser.add_argument("--n-eval", type=int, default=30, help="test instructions per intermediate evaluation")
+    parser.add_argument("--n-test", type=int, default=100, help="test instructions of the final evaluation")
+    parser.add_argument("--out", type=Path, default=REPO_ROOT / "results" / "learning")
+    parser.add_argument("--tag", default="", help="suffix of the output files")
+    parser.add_argument("--save", type=Path, default=None, help="folder for each seed's final model")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    register_algorithms()
+    benchmark = InstructionBenchmark(args.env, 1, 10, n_test=args.n_test, env_kwargs=args.env_kwargs)
+    rows = []
+    for seed in args.seeds:
+        seed_rows, model = train_one(args, seed, benchmark)
+        rows.extend(seed_rows)
+        if args.save is not None:
+            model.save(args.save / f"{args.algo}_seed{seed}")
+    name = f"{args.algo}_{args.env.split('/')[-1]}{args.tag}"
+    args.out.mkdir(parents=True, exist_ok=True)
+    with (args.out / f"{name}_curves.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    summary = {"algo": args.algo, "env": args.env, "env_kwargs": args.env_kwargs, "hyperparams": args.hyperparams,
+               "train_max_length": args.train_max_length, "command": " ".join(sys.argv), **summarise(rows, args.seeds)}
+    (args.out / f"{name}_summary.json").write_text(json.dumps(summary, indent=2))
+    print(json.dumps(summary, indent=2))
+
+
+if __name__ == "__main__":
+    main()
