@@ -247,8 +247,13 @@ def _encode_policy_kwargs(policy_kwargs: dict[str, Any]) -> dict[str, Any]:
     for key, value in policy_kwargs.items():
         if key in _CLASS_KWARGS:
             name = getattr(value, "__name__", None)
-            if _CLASS_KWARGS[key].resolve(name) is not value:
-                raise ValueError(f"policy_kwargs[{key!r}] = {value!r} cannot be stored by name")
+            try:
+                stored_by_name = _CLASS_KWARGS[key].resolve(name) is value
+            except ValueError:
+                stored_by_name = False
+            if not stored_by_name:
+                raise ValueError(f"policy_kwargs[{key!r}] = {value!r} cannot be stored by name: {name!r} is not a "
+                                 f"{_CLASS_KWARGS[key].base.__name__} class of {_CLASS_KWARGS[key].module.__name__}")
             encoded[key] = name
             continue
         try:
