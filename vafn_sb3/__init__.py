@@ -24,3 +24,7 @@ __all__ = [
     "collect_support",
     "evaluate_adaptation",
 ]
+
+from vafn_sb3.common.serialization import atomic_write, load_weights, save_weights  # noqa: E402
+
+__all__ += ["atomic_write", "load_weights", "save_weights"]
