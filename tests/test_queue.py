@@ -664,3 +664,52 @@ def test_discard_removes_matching_entries_and_keeps_the_rest_untouched():
     assert queue.snapshot() == [kept, later]  # same entries: sequence numbers and timestamps unchanged
     assert queue.cleared == 1 and queue.enqueued == queue.dequeued + queue.dropped + queue.cleared + len(queue)
     assert queue.discard(lambda entry: False) == []
+
+
+# --- the multimedia stream feeding the queue (a stub generator: no model needed) ---
+class _CodeGenerator:
+    """Transcribes ``code=`` only, like the real generator's code path, and fails on anything else."""
+
+    def transcribe(self, audio=None, image=None, code=None, sample_rate=None):
+        from types import SimpleNamespace
+
+        if code is None:
+            raise SystemExit("no code given")  # the worst a generator can do to a thread
+        return SimpleNamespace(instruction=Instruction.coerce(code), confidence=1.0, confidences=(1.0,),
+                               low_confidence=False, method="code", warnings=(), modalities=("code",))
+
+
+def test_stream_stop_and_wait_return_at_once_when_never_started():
+    from vafn_gym.multimedia.stream import MultimediaStream
+
+    stream = MultimediaStream(InstructionQueue(), _CodeGenerator())
+    assert stream.wait() is True  # nothing pending
+    stream.submit(code="1")
+    outcome: list = []
+    waiter = threading.Thread(target=lambda: outcome.append((stream.wait(), stream.stop(), stream.stop(drain=False))))
+    waiter.start()
+    waiter.join(timeout=2.0)
+    assert not waiter.is_alive(), "wait()/stop() hung on a stream that was never started"
+    assert outcome == [(False, None, None)] and not stream.alive
+
+
+@pytest.mark.parametrize("fatal", [SystemExit, KeyboardInterrupt, RuntimeError])
+def test_stream_worker_survives_callbacks_and_generators_raising_anything(fatal):
+    from vafn_gym.multimedia.stream import MultimediaStream
+
+    def callback(event):
+        if event.ticket == 0:
+            raise fatal("callback failed")
+
+    queue = InstructionQueue()
+    stream = MultimediaStream(queue, _CodeGenerator(), on_event=callback).start()
+    stream.submit(code="1")  # its callback raises
+    stream.submit(audio=np.zeros(10))  # the generator raises SystemExit
+    stream.submit(code="2,3")
+    drained, alive = stream.wait(timeout=5.0), stream.alive
+    stream.stop(drain=False, timeout=5.0)
+    assert drained and alive and not stream.alive
+    assert [event.status for event in stream.events] == ["enqueued", "error", "enqueued"]
+    assert "SystemExit" in stream.events[1].message
+    assert codes(queue) == ["1", "2,3"]
+    assert len(stream.errors) == 1 and fatal.__name__ in stream.errors[0] and "ticket 0" in stream.errors[0]

@@ -7,12 +7,23 @@ import queue as _queue
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Optional
+from typing import Any, Callable
 
 from vafn_gym.multimedia.constants import LOW_CONFIDENCE
 
 #: How long the worker waits for a request before re-checking for shutdown (seconds).
 _POLL_SECONDS = 0.05
+
+
+def _describe(error: BaseException) -> str:
+    """``"Type: message"`` of an exception, cut to a readable length."""
+    try:
+        message = str(error)
+    except Exception:  # an exception with a broken __str__ must not take the worker down with it
+        message = "<unprintable message>"
+    if len(message) > 200:
+        message = message[:197] + "..."
+    return f"{type(error).__name__}: {message}"
 
 
 @dataclass(frozen=True)
@@ -47,7 +58,9 @@ class MultimediaStream:
     Each entry's ``source`` is the modalities that produced it (``"audio"``, ``"image"``, ``"audio+image"``,
     ``"code"``) and its ``metadata`` holds ``latency_s`` (submit -> enqueue), ``transcribe_s``, ``confidence``,
     ``confidences``, ``method``, ``warnings`` and ``ticket``. Results below ``min_confidence`` are not enqueued but
-    reported as "rejected"; bad input and a full queue are reported as "error". The thread never dies on bad input.
+    reported as "rejected"; bad input and a full queue are reported as "error". The thread never dies: not on bad
+    input, and not on a generator or ``on_event`` callback that raises (even ``SystemExit`` or ``KeyboardInterrupt``);
+    such failures are kept in :attr:`errors`.
 
     :param instruction_queue: the destination ``vafn_gym.queue.InstructionQueue``.
     :param generator: the generator (default: the packaged checkpoint).
@@ -58,8 +71,15 @@ class MultimediaStream:
     :param max_pending: bound of the request backlog; ``submit`` raises ``queue.Full`` beyond it.
     """
 
-    def __init__(self, instruction_queue: Any, generator: Any = None, min_confidence: float = LOW_CONFIDENCE,
-                 reject_flagged: bool = True, on_event: Optional[Callable[[StreamEvent], None]] = None, max_pending: int = 256) -> None:
+    def __init__(
+        self,
+        instruction_queue: Any,
+        generator: Any = None,
+        min_confidence: float = LOW_CONFIDENCE,
+        reject_flagged: bool = True,
+        on_event: Callable[[StreamEvent], None] | None = None,
+        max_pending: int = 256,
+    ) -> None:
         if generator is None:
             from vafn_gym.multimedia.generator import InstructionGenerator
 
@@ -70,10 +90,12 @@ class MultimediaStream:
         self.reject_flagged = bool(reject_flagged)
         self.on_event = on_event
         self.events: list[StreamEvent] = []
+        #: Failures of the worker's own machinery (a raising ``on_event`` callback, ...), oldest first.
+        self.errors: list[str] = []
         self._requests: "_queue.Queue[_Request]" = _queue.Queue(max_pending)
         self._tickets = itertools.count()
         self._stop = threading.Event()
-        self._thread: Optional[threading.Thread] = None
+        self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
 
     # --- lifecycle ---
@@ -85,17 +107,18 @@ class MultimediaStream:
             self._thread.start()
         return self
 
-    def stop(self, drain: bool = True, timeout: Optional[float] = None) -> None:
-        """Stop the worker; with ``drain`` it first finishes every pending request.
+    def stop(self, drain: bool = True, timeout: float | None = None) -> None:
+        """Stop the worker; with ``drain`` it first finishes every pending request. Returns at once if never started.
 
-        :param drain: process the backlog before stopping.
-        :param timeout: seconds to wait for the thread.
+        :param drain: process the backlog before stopping (only while the worker is running).
+        :param timeout: seconds to wait in all (draining and joining), ``None`` for no limit.
         """
-        if drain:
-            self._requests.join()
+        deadline = None if timeout is None else time.perf_counter() + timeout
+        if drain and self.alive:
+            self.wait(timeout)
         self._stop.set()
         if self._thread is not None:
-            self._thread.join(timeout)
+            self._thread.join(None if deadline is None else max(0.0, deadline - time.perf_counter()))
 
     def __enter__(self) -> "MultimediaStream":
         return self.start()
@@ -109,8 +132,8 @@ class MultimediaStream:
         return self._thread is not None and self._thread.is_alive()
 
     # --- producer side ---
-    def submit(self, audio: Any = None, image: Any = None, code: Any = None, sample_rate: Optional[int] = None,
-               metadata: Optional[dict] = None) -> int:
+    def submit(self, audio: Any = None, image: Any = None, code: Any = None, sample_rate: int | None = None,
+               metadata: dict | None = None) -> int:
         """Queue media for transcription; returns a ticket. Arrival time is taken now.
 
         :param audio: audio path / waveform / (waveform, rate).
@@ -124,14 +147,16 @@ class MultimediaStream:
         self._requests.put_nowait(_Request(ticket, time.perf_counter(), kwargs, dict(metadata or {})))
         return ticket
 
-    def wait(self, timeout: Optional[float] = None) -> bool:
+    def wait(self, timeout: float | None = None) -> bool:
         """Block until every submitted request was handled (or ``timeout`` seconds passed); True when drained.
+
+        Returns at once when the worker is not running (never started, or stopped): True only if nothing is pending.
 
         :param timeout: seconds, None for no limit.
         """
         deadline = None if timeout is None else time.perf_counter() + timeout
         while self._requests.unfinished_tasks:
-            if deadline is not None and time.perf_counter() > deadline:
+            if not self.alive or (deadline is not None and time.perf_counter() > deadline):
                 return False
             time.sleep(0.005)
         return True
@@ -143,15 +168,19 @@ class MultimediaStream:
         if self.on_event is not None:
             try:
                 self.on_event(event)
-            except Exception:  # a faulty callback must not kill the stream
-                pass
+            except BaseException as error:  # noqa: B036 - a faulty callback (even SystemExit) must not kill the stream
+                self._error(f"on_event callback raised {_describe(error)} for ticket {event.ticket}")
+
+    def _error(self, message: str) -> None:
+        with self._lock:
+            self.errors.append(message)
 
     def _handle(self, request: _Request) -> StreamEvent:
         started = time.perf_counter()
         try:
             result = self.generator.transcribe(**request.kwargs)
-        except Exception as error:  # bad input of any kind becomes an event, never a dead thread
-            return StreamEvent(request.ticket, "error", f"{type(error).__name__}: {error}",
+        except BaseException as error:  # noqa: B036 - bad input of any kind becomes an event, never a dead thread
+            return StreamEvent(request.ticket, "error", _describe(error),
                                latency_s=time.perf_counter() - request.submitted_at)
         transcribe_s = time.perf_counter() - started
         if result.confidence < self.min_confidence or (self.reject_flagged and result.low_confidence):
@@ -179,7 +208,8 @@ class MultimediaStream:
                 continue
             try:
                 self._record(self._handle(request))
-            except Exception as error:  # last line of defence
-                self._record(StreamEvent(request.ticket, "error", f"{type(error).__name__}: {error}"))
+            except BaseException as error:  # noqa: B036 - last line of defence: the worker must outlive anything
+                self._error(f"ticket {request.ticket}: {_describe(error)}")
+                self._record(StreamEvent(request.ticket, "error", _describe(error)))
             finally:
                 self._requests.task_done()
