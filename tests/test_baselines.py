@@ -393,7 +393,8 @@ def test_adapt_fine_tunes_a_copy_and_leaves_the_model_unchanged(trained):
         after_state = recursive_getattr(model, name).state_dict()
         for param_id, param_state in state["state"].items():
             for key, value in param_state.items():
-                assert th.equal(th.as_tensor(value), th.as_tensor(after_state["state"][param_id][key])), f"{name} changed"
+                after = after_state["state"][param_id][key]
+                assert th.equal(th.as_tensor(value), th.as_tensor(after)), f"{name} changed"
     assert all(model.__dict__.get(name) is buffer for name, buffer in buffers.items())
     changed = [key for key in before if not th.equal(before[key], adapted.state_dict()[key])]
     assert changed, f"{name}: k=2 fine-tuning steps changed no parameter"

@@ -2,11 +2,12 @@
 
 The joint observation is ``N`` equal local blocks of ``obs_per_agent`` numbers and the joint action ``N`` blocks of
 ``action_per_agent`` numbers; :class:`AgentLayout` reads ``N`` and the block sizes from the spaces (or from explicit
-``policy_kwargs``), so nothing here knows the number of arms. A *decentralised* actor reshapes ``(B, N * obs_per_agent)``
-to ``(B, N, obs_per_agent)``, optionally appends a one-hot agent id, runs one shared MLP on every agent independently and
-maps each agent's latent to that agent's action block with one shared head. Agent ``i``'s action therefore depends on
-agent ``i``'s local observation only (the Jacobian block ``d a_i / d o_j`` is exactly zero for ``j != i``;
-``tests/test_baselines.py`` checks it), and the number of parameters does not grow with the number of agents. With
+``policy_kwargs``), so nothing here knows the number of arms. A *decentralised* actor reshapes
+``(B, N * obs_per_agent)`` to ``(B, N, obs_per_agent)``, optionally appends a one-hot agent id, runs one shared MLP on
+every agent independently and maps each agent's latent to that agent's action block with one shared head. Agent
+``i``'s action therefore depends on agent ``i``'s local observation only (the Jacobian block ``d a_i / d o_j`` is
+exactly zero for ``j != i``; ``tests/test_baselines.py`` checks it), and the number of parameters does not grow with the
+number of agents. With
 agent ids (the default) this is the parameter sharing of ``marlbenchmark/on-policy`` (``share_policy=True``) and
 ``oxwhirl/facmac`` (``agent_id`` inputs); without them (``agent_ids=False``) the actor's parameters do not depend on
 ``N`` at all, so a trained actor runs on a layout with a different number of arms.
@@ -64,7 +65,7 @@ class AgentLayout:
         obs_per_agent: int | None = None,
         action_per_agent: int | None = None,
     ) -> AgentLayout:
-        """The layout of flat Box spaces; missing sizes are inferred, given ones checked (``ValueError`` if inconsistent).
+        """The layout of flat Box spaces: missing sizes inferred, given ones checked (``ValueError`` if inconsistent).
 
         ``n_agents`` defaults to ``action_dim // action_per_agent`` (``action_per_agent`` defaults to
         :data:`DEFAULT_ACTION_PER_AGENT`, or to ``action_dim // n_agents`` when ``n_agents`` is given) and
@@ -129,7 +130,7 @@ def with_agent_ids(local: th.Tensor) -> th.Tensor:
 
 
 def substitute_agent_actions(others: th.Tensor, own: th.Tensor, action_per_agent: int) -> th.Tensor:
-    """Joint actions for the per-agent actor losses: copy ``i`` takes agent ``i``'s block from ``own``, the rest from ``others``.
+    """Joint actions for the per-agent actor losses: copy ``i`` has ``own``'s block ``i`` and ``others``' other blocks.
 
     Gradients flow through ``own``'s block ``i`` in copy ``i`` only; ``others`` is detached. This is the substitution of
     ``oxwhirl/facmac:src/learners/maddpg_learner.py`` (``tem_joint_act[:, idx] = agent_outs[:, idx]``) and of
@@ -326,7 +327,7 @@ class AgentLayoutPolicyMixin:
 
     :param n_agents: number of agents (default: ``action_dim // action_per_agent``).
     :param obs_per_agent: observation numbers per agent (default: ``obs_dim // n_agents``).
-    :param action_per_agent: action numbers per agent (default: 3, or ``action_dim // n_agents`` if ``n_agents`` is given).
+    :param action_per_agent: action numbers per agent (default: 3, or ``action_dim // n_agents`` given ``n_agents``).
     :param agent_ids: append a one-hot agent id to the shared actor's input; False makes the actor's parameters
         independent of the number of agents.
     """
@@ -379,7 +380,9 @@ class SharedAgentSACPolicy(AgentLayoutPolicyMixin, SACPolicy):
         return SquashedAgentActor(**self._agent_actor_kwargs(actor_kwargs)).to(self.device)
 
 
-def clipped_step(loss: th.Tensor, optimizer: th.optim.Optimizer, parameters: list[nn.Parameter], max_norm: float) -> None:
+def clipped_step(
+    loss: th.Tensor, optimizer: th.optim.Optimizer, parameters: list[nn.Parameter], max_norm: float
+) -> None:
     """Backpropagate ``loss``, clip the gradient norm of ``parameters`` to ``max_norm`` and take an optimiser step.
 
     :param loss: scalar loss.

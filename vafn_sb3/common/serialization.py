@@ -145,7 +145,7 @@ def _check_zip_entries(file: Path | io.BufferedIOBase, name: str, required: tupl
 
 
 class AtomicSaveMixin:
-    """Algorithm mixin (first in the bases): atomic ``save`` and a ``load`` that rejects broken files with ValueError."""
+    """Algorithm mixin (first in the bases): atomic ``save``; ``load`` rejects broken files with a ValueError."""
 
     def save(
         self,
@@ -153,7 +153,7 @@ class AtomicSaveMixin:
         exclude: list[str] | None = None,
         include: list[str] | None = None,
     ) -> None:
-        """SB3's ``save`` through :func:`atomic_write`: a crash mid-save keeps the previous file (file objects as is)."""
+        """SB3's ``save`` through :func:`atomic_write` (paths only): a crash mid-save keeps the previous file."""
         save = super().save  # type: ignore[misc]
         if isinstance(path, io.BufferedIOBase):
             save(path, exclude, include)
@@ -321,7 +321,7 @@ def _tensor_bytes(tensors: dict[str, th.Tensor]) -> bytes:
 
 
 def save_weights(model: BaseAlgorithm, path: str | os.PathLike[str]) -> Path:
-    """Write ``model`` as a weights-only zip (JSON config + tensor dicts) that :func:`load_weights` reads without pickle.
+    """Write ``model`` as one weights-only zip (a JSON config and tensor dicts; loading it never unpickles).
 
     :param model: a model of one of :func:`weights_algorithms`.
     :param path: the file to write (atomically; no suffix is added).
@@ -390,7 +390,9 @@ def load_weights(path: str | os.PathLike[str], env: Any = None, device: th.devic
     if policy not in cls.policy_aliases:
         raise ValueError(f"{name}: {cls.__name__} has no policy alias {policy!r} ({sorted(cls.policy_aliases)})")
     hyperparameters = config.get("hyperparameters", {})
-    unknown = set(hyperparameters) - _hyperparameter_names(cls) if isinstance(hyperparameters, dict) else {"<not a dict>"}
+    if not isinstance(hyperparameters, dict):
+        raise ValueError(f"{name}: hyperparameters must be a JSON object")
+    unknown = set(hyperparameters) - _hyperparameter_names(cls)
     if unknown:
         raise ValueError(f"{name}: unknown {cls.__name__} hyperparameters {sorted(unknown)}")
     observation_space = _decode_space(config.get("observation_space"))

@@ -9,9 +9,9 @@ The critic follows ``shariqiqbal2810/MAAC:utils/critics.py`` (``AttentionCritic`
   logits are scaled by ``1/sqrt(d_head)`` and softmaxed over the *other* agents only;
 - a per-agent head ``Q_i = f_i([., x_i])`` (``critics``) on the agent's encoding and its attention output ``x_i``.
 
-Continuous actions (MAAC's official code is discrete-only): the reference head reads the *state* encoding ``s_i`` and
-outputs a Q per discrete action; here the head reads ``e_i``, so agent ``i``'s own action enters ``Q_i`` and ``Q_i`` is a
-scalar. Per-agent weights are batched in
+Continuous actions (MAAC's official code is discrete-only): the reference head reads the *state* encoding ``s_i``
+and outputs a Q per discrete action; here the head reads ``e_i``, so agent ``i``'s own action enters ``Q_i`` and
+``Q_i`` is a scalar. Per-agent weights are batched in
 :class:`~vafn_sb3.common.agents.AgentwiseLinear` (identical to MAAC's ``nn.ModuleList`` per agent). MAAC's
 ``BatchNorm1d(affine=False)`` input normalisation is omitted (target-network BN-statistics pitfall, SB3 #996). Several
 attention critics (``n_critics``, twin by default, as in SB3's SAC) replace MAAC's single critic: an improvement over
@@ -62,7 +62,9 @@ class AttentionQ(nn.Module):
         self.selector_extractor = nn.Linear(hidden_dim, hidden_dim, bias=False)
         self.value_extractor = nn.Sequential(nn.Linear(hidden_dim, hidden_dim), nn.LeakyReLU())
         self.head = nn.Sequential(
-            AgentwiseLinear(n_agents, 2 * hidden_dim, hidden_dim), nn.LeakyReLU(), AgentwiseLinear(n_agents, hidden_dim, 1)
+            AgentwiseLinear(n_agents, 2 * hidden_dim, hidden_dim),
+            nn.LeakyReLU(),
+            AgentwiseLinear(n_agents, hidden_dim, 1),
         )
         others = ~th.eye(n_agents, dtype=th.bool)
         self.register_buffer("others_mask", others, persistent=False)
@@ -81,7 +83,8 @@ class AttentionQ(nn.Module):
         """Per-agent ``Q (B, N)`` and attention logits ``(B, heads, N, N - 1)``.
 
         :param obs: joint observations ``(B, N * obs_per_agent)``.
-        :param actions: joint actions ``(B, N * action_per_agent)``; agent ``i``'s block enters ``Q_i`` through its own encoding.
+        :param actions: joint actions ``(B, N * action_per_agent)``; agent ``i``'s block enters ``Q_i`` through its own
+            encoding.
         :param others_actions: joint actions the *other* agents' keys and values are computed from (default
             ``actions``). Passing ``actions.detach()`` gives every ``Q_i`` a gradient w.r.t. ``a_i`` only, in one
             forward pass (``Q_i`` attends over ``j != i`` only, so its sole path to ``a_i`` is ``e_i``).
@@ -181,7 +184,8 @@ class MAACPolicy(SharedAgentSACPolicy):
     def make_critic(self, features_extractor: nn.Module | None = None) -> AttentionCritic:
         """Build an attention critic."""
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
-        return AttentionCritic(**critic_kwargs, attend_heads=self.attend_heads, layout=self.agent_layout).to(self.device)
+        critic = AttentionCritic(**critic_kwargs, attend_heads=self.attend_heads, layout=self.agent_layout)
+        return critic.to(self.device)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()

@@ -1,4 +1,4 @@
-"""MADDPG policy: decentralised deterministic actors with shared parameters, one centralised critic ``Q(s, a_1..a_N)``."""
+"""MADDPG policy: decentralised parameter-shared deterministic actors, one centralised critic ``Q(s, a_1..a_N)``."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ from torch import nn
 
 from vafn_sb3.common.agents import AgentLayoutPolicyMixin, DeterministicAgentActor
 
-#: ``openai/maddpg:experiments/train.py``: ``--num-units 64`` in a two-hidden-layer MLP (``mlp_model``), for actor and critic.
+#: ``openai/maddpg:experiments/train.py``: ``--num-units 64`` in a two-hidden-layer MLP (``mlp_model``), actor and
+#: critic.
 DEFAULT_NET_ARCH = [64, 64]
 #: With one shared team reward a single centralised Q suffices (plain MADDPG); 2 gives MATD3-style clipped double Q.
 DEFAULT_N_CRITICS = 1

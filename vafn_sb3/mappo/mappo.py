@@ -18,8 +18,9 @@ from vafn_sb3.mappo.policies import AgentRolloutBuffer, MAPPOPolicy
 
 SelfMAPPO = TypeVar("SelfMAPPO", bound="MAPPO")
 
-#: ``onpolicy/config.py`` defaults: ``--huber_delta 10.0``, ``--ppo_epoch 15`` (MPE scripts use 10), ``--num_mini_batch 1``,
-#: ``--lr 5e-4``, ``--entropy_coef 0.01``, ``--value_loss_coef 1``, ``--max_grad_norm 10.0``, ``--clip_param 0.2``.
+#: ``onpolicy/config.py`` defaults: ``--huber_delta 10.0``, ``--ppo_epoch 15`` (MPE scripts use 10),
+#: ``--num_mini_batch 1``, ``--lr 5e-4``, ``--entropy_coef 0.01``, ``--value_loss_coef 1``, ``--max_grad_norm 10.0``,
+#: ``--clip_param 0.2``.
 HUBER_DELTA = 10.0
 N_EPOCHS = 10
 NUM_MINI_BATCH = 1
@@ -130,7 +131,8 @@ class MAPPO(AtomicSaveMixin, FineTuneAdaptation, PPO):
         clip_range_vf = None if self.clip_range_vf is None else self.clip_range_vf(progress)  # type: ignore[operator]
         self._prepare_rollout()
         actor_parameters, critic_parameters = self.policy.actor_parameters(), self.policy.critic_parameters()
-        logs: dict[str, list[float]] = {key: [] for key in ("policy_gradient_loss", "value_loss", "entropy", "clip_fraction")}
+        log_keys = ("policy_gradient_loss", "value_loss", "entropy", "clip_fraction")
+        logs: dict[str, list[float]] = {key: [] for key in log_keys}
         approx_kl_divs: list[float] = []
         continue_training = True
         for epoch in range(self.n_epochs):

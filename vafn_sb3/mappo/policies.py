@@ -31,7 +31,8 @@ from vafn_sb3.common.agents import (
     per_agent_sum,
 )
 
-#: ``onpolicy/config.py``: ``--hidden_size 64``, ``--layer_N 1`` (an input layer plus one hidden layer: two of width 64).
+#: ``onpolicy/config.py``: ``--hidden_size 64``, ``--layer_N 1`` (an input layer plus one hidden layer: two of
+#: width 64).
 DEFAULT_NET_ARCH = [64, 64]
 #: ``onpolicy/utils/valuenorm.py`` defaults.
 VALUE_NORM_BETA = 0.99999
@@ -139,7 +140,9 @@ class MAPPOPolicy(AgentLayoutPolicyMixin, ActorCriticPolicy):
         if kwargs.get("use_sde", False):
             raise ValueError("MAPPO uses a state-independent Gaussian; gSDE is not supported")
         if not kwargs.get("share_features_extractor", True):
-            raise ValueError("MAPPO's actor and critic split the raw observation themselves; keep share_features_extractor")
+            raise ValueError(
+                "MAPPO's actor and critic split the raw observation themselves; keep share_features_extractor"
+            )
         self.layer_norm = layer_norm  # read by _build_mlp_extractor, which ActorCriticPolicy.__init__ calls
         super().__init__(*args, **kwargs)
 
@@ -174,7 +177,8 @@ class MAPPOPolicy(AgentLayoutPolicyMixin, ActorCriticPolicy):
         return data
 
     def _get_action_dist_from_latent(self, latent_pi: th.Tensor) -> DiagGaussianDistribution:
-        return self.action_dist.proba_distribution(self.action_net(latent_pi), self.agent_log_std.repeat(self.agent_layout.n_agents))
+        log_std = self.agent_log_std.repeat(self.agent_layout.n_agents)
+        return self.action_dist.proba_distribution(self.action_net(latent_pi), log_std)
 
     def actor_parameters(self) -> list[nn.Parameter]:
         """Parameters of the shared actor (clipped separately, as on-policy's ``actor_optimizer`` group)."""
@@ -252,7 +256,9 @@ class AgentRolloutBuffer(RolloutBuffer):
             self.old_normalized_values = self.swap_and_flatten(self.old_normalized_values)
         yield from super().get(batch_size)
 
-    def _get_samples(self, batch_inds: np.ndarray, env: VecNormalize | None = None) -> AgentRolloutBufferSamples:  # type: ignore[override]
+    def _get_samples(  # type: ignore[override]
+        self, batch_inds: np.ndarray, env: VecNormalize | None = None
+    ) -> AgentRolloutBufferSamples:
         return AgentRolloutBufferSamples(
             *super()._get_samples(batch_inds, env),
             self.to_torch(self.old_agent_log_prob[batch_inds]),

@@ -19,10 +19,11 @@ class MTSAC(AtomicSaveMixin, FineTuneAdaptation, SAC):
     """Plain SB3 SAC trained on the union of training tasks; ``adapt`` fine-tunes it on the support set.
 
     Training is SB3's SAC unchanged: pre-train on an env that samples training instructions every episode (e.g.
-    ``VAFN/ThreeArmReachHidden-v0`` with ``split="train"``). ``adapt`` (from
-    :class:`~vafn_sb3.common.finetune.FineTuneAdaptation`) runs ``k`` full-batch SAC updates (critic, actor, temperature,
-    target networks, with SAC's own Adam optimisers) on exactly the support data MAML-SAC receives, then restores the
-    model. This is the "multi-task pre-training + fine-tuning" baseline of Mandi et al. (NeurIPS 2022). Parameters are
+    ``VAFN/ThreeArmReachHidden-v1`` with ``split="train"``). ``adapt`` (from
+    :class:`~vafn_sb3.common.finetune.FineTuneAdaptation`) runs ``k`` full-batch SAC updates (critic, actor,
+    temperature, target networks, with SAC's own Adam optimisers) on exactly the support data MAML-SAC receives, then
+    restores the model. This is the "multi-task pre-training + fine-tuning" baseline of Mandi et al. (NeurIPS 2022).
+    Policies: ``"MlpPolicy"`` (SB3's) or ``"SharedAgentPolicy"`` (the decentralised per-agent actor). Parameters are
     SB3's ``SAC``'s.
     """
 
