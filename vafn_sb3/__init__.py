@@ -8,6 +8,7 @@ from vafn_sb3.maml_sac import MAMLSAC
 from vafn_sb3.mappo import MAPPO
 from vafn_sb3.mtsac import MTSAC
 from vafn_sb3.online import OnlineController
+from vafn_sb3.sac import SAC
 
 __all__ = [
     "MAAC",
@@ -19,6 +20,7 @@ __all__ = [
     "AdaptedPolicy",
     "MetaEvalCallback",
     "OnlineController",
+    "SAC",
     "RolloutCollisionCallback",
     "SuccessCollisionEvalCallback",
     "collect_support",

@@ -25,10 +25,11 @@ class AlgoSpec:
     family: type
 
 
-#: Every algorithm the zoo knows, by zoo key. ``sac`` is SB3's own SAC (the single-task reference).
+#: Every algorithm the zoo knows, by zoo key. ``sac`` is SB3's SAC with the shared per-arm actor alias (vafn_sb3.SAC).
 VAFN_ALGOS: dict[str, AlgoSpec] = {
     spec.key: spec
     for spec in (
+        AlgoSpec("sac", "SAC", SAC),
         AlgoSpec("maml_sac", "MAMLSAC", SAC),
         AlgoSpec("mtsac", "MTSAC", SAC),
         AlgoSpec("maac", "MAAC", SAC),
@@ -62,9 +63,8 @@ def _register(key: str, algo_class: type, sampler: Sampler) -> None:
 
 
 def register_algorithms() -> list[str]:
-    """Register SB3's SAC and every importable vafn algorithm; returns the registered keys (missing ones: UNAVAILABLE)."""
-    _register("sac", SAC, make_off_policy_sampler("sac", SAC))
-    registered = ["sac"]
+    """Register every importable vafn algorithm; returns the registered keys (missing ones: UNAVAILABLE)."""
+    registered = []
     UNAVAILABLE.clear()
     for key, spec in VAFN_ALGOS.items():
         try:

@@ -35,6 +35,8 @@ from stable_baselines3.common.utils import polyak_update
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.sac import SAC
 from stable_baselines3.sac.policies import CnnPolicy, MlpPolicy, MultiInputPolicy
+
+from vafn_sb3.sac.policies import SharedAgentPolicy
 from torch.func import vmap
 
 from vafn_gym.instructions import Instruction
@@ -98,7 +100,8 @@ class MAMLSAC(AtomicSaveMixin, SAC):
 
     Takes every :class:`~stable_baselines3.SAC` argument (``kwargs``), plus:
 
-    :param policy: SAC policy (``"MlpPolicy"``); no gSDE, no BatchNorm.
+    :param policy: SAC policy (``"SharedAgentPolicy"``: one actor shared by every arm, or ``"MlpPolicy"``); no gSDE,
+        no BatchNorm.
     :param env: env or VecEnv whose envs expose ``set_task`` (all envs run the same task at a time).
     :param meta_batch_size: tasks per meta-iteration (5, as in the paper).
     :param n_support: support transitions per task per iteration, collected with the stochastic meta-policy.
@@ -129,6 +132,7 @@ class MAMLSAC(AtomicSaveMixin, SAC):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         "MlpPolicy": MlpPolicy,
+        "SharedAgentPolicy": SharedAgentPolicy,
         "CnnPolicy": CnnPolicy,
         "MultiInputPolicy": MultiInputPolicy,
     }

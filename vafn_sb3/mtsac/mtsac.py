@@ -10,7 +10,7 @@ from stable_baselines3.common.type_aliases import MaybeCallback
 
 from vafn_sb3.common.finetune import FineTuneAdaptation
 from vafn_sb3.common.serialization import AtomicSaveMixin
-from vafn_sb3.mtsac.policies import MlpPolicy, SharedAgentPolicy
+from vafn_sb3.sac.policies import MlpPolicy, SharedAgentPolicy
 
 SelfMTSAC = TypeVar("SelfMTSAC", bound="MTSAC")
 
