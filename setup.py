@@ -21,7 +21,10 @@ setup(
     long_description=open("README.md", encoding="utf-8").read(),
     long_description_content_type="text/markdown",
     packages=find_packages(include=["vafn_gym", "vafn_gym.*", "vafn_sb3", "vafn_sb3.*"]),
-    package_data={"vafn_gym": ["multimedia/checkpoints/*.pt", "multimedia/checkpoints/*.json"]},
+    package_data={
+        "vafn_gym": ["multimedia/checkpoints/*.pt", "multimedia/checkpoints/*.json"],
+        "vafn_sb3": ["pretrained/*.zip", "pretrained/*.json"],
+    },
     python_requires=">=3.10",
     install_requires=[
         "gymnasium>=1.0",

@@ -8,6 +8,7 @@ from vafn_sb3.maml_sac import MAMLSAC
 from vafn_sb3.mappo import MAPPO
 from vafn_sb3.mtsac import MTSAC
 from vafn_sb3.online import OnlineController
+from vafn_sb3.pretrained import available_pretrained, load_pretrained, pretrained_info
 from vafn_sb3.sac import SAC
 
 __all__ = [
@@ -23,8 +24,11 @@ __all__ = [
     "SAC",
     "RolloutCollisionCallback",
     "SuccessCollisionEvalCallback",
+    "available_pretrained",
     "collect_support",
     "evaluate_adaptation",
+    "load_pretrained",
+    "pretrained_info",
 ]
 
 from vafn_sb3.common.serialization import atomic_write, load_weights, save_weights  # noqa: E402

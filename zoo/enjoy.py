@@ -1,11 +1,15 @@
 """Watch or record a trained vafn agent (or the scripted controller) on a VAFN env; rgb_array frames -> GIF / MP4.
 
-    python zoo/enjoy.py --algo sac --env VAFN/ThreeArmReach-v0 -f logs --record results/sac.gif
-    python zoo/enjoy.py --algo sac --env VAFN/ThreeArmReach-v0 -f logs --render-mode human     # GUI window
-    python zoo/enjoy.py --scripted --env VAFN/ThreeArmReach-v0 --instruction 2,3,1,3 --record demo.mp4
+    python zoo/enjoy.py --pretrained sac --instruction 2,3,1,3 --record demo.gif          # the packaged policy
+    python zoo/enjoy.py --pretrained sac --n-test 100                                      # held-out evaluation
+    python zoo/enjoy.py --algo sac --env VAFN/ThreeArmReach-v1 -f logs --record results/sac.gif
+    python zoo/enjoy.py --algo sac --env VAFN/ThreeArmReach-v1 -f logs --render-mode human     # GUI window
+    python zoo/enjoy.py --scripted --env VAFN/ThreeArmReach-v1 --instruction 2,3,1,3 --record demo.mp4
 
 The model is found like ``python -m rl_zoo3.enjoy`` finds it (``-f/--exp-id/--load-best``); the env kwargs and
-VecNormalize statistics saved with the run are reused. Prints return, success and collision per episode.
+VecNormalize statistics saved with the run are reused. Prints return, success and collision per episode. With
+``--n-test N`` it instead scores the policy on the first N held-out test instructions of
+:class:`vafn_gym.InstructionBenchmark` (the protocol of every curve in the project).
 """
 
 from __future__ import annotations
@@ -22,7 +26,6 @@ if str(REPO_ROOT) not in sys.path:
 
 import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
-import yaml  # noqa: E402
 from huggingface_sb3 import EnvironmentName  # noqa: E402
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize  # noqa: E402
 from tqdm import tqdm  # noqa: E402
@@ -107,7 +110,7 @@ def run(
                 print(f"episode {len(episodes)}: return {total:.2f}, success {episode['success']:.0f}, "
                       f"collision {episode['collision']:.0f}, length {length}")
                 total, length = 0.0, 0
-                if hasattr(policy, "reset"):
+                if callable(getattr(policy, "reset", None)):
                     policy.reset()
     finally:
         venv.close()
@@ -116,15 +119,25 @@ def run(
     return episodes
 
 
-def main(argv: list[str] | None = None) -> list[dict[str, float]]:
+def evaluate_held_out(policy: Any, env_id: str, env_kwargs: dict, n_test: int) -> list[dict[str, Any]]:
+    """Score ``policy`` once on each of ``n_test`` held-out test instructions (lengths 1-10) and print the rates."""
+    rows = vafn_gym.InstructionBenchmark(env_id, n_test=n_test, env_kwargs=env_kwargs).evaluate(policy)
+    success, collision = np.mean([r["success"] for r in rows]), np.mean([r["collision"] for r in rows])
+    print(f"{env_id}: success {success:.3f}, collision rate {collision:.3f} on {len(rows)} held-out instructions")
+    return rows
+
+
+def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     """Command-line entry point; returns the per-episode results."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--algo", default="sac", help="zoo algorithm key of the trained agent")
-    parser.add_argument("--env", default="VAFN/ThreeArmReach-v0", choices=vafn_gym.ENV_IDS)
+    parser.add_argument("--env", default="VAFN/ThreeArmReach-v1", choices=vafn_gym.ENV_IDS)
     parser.add_argument("-f", "--folder", default="logs", help="zoo log folder")
     parser.add_argument("--exp-id", type=int, default=0, help="run number (0: latest)")
     parser.add_argument("--load-best", action="store_true", help="load best_model.zip instead of the final model")
     parser.add_argument("--scripted", action="store_true", help="run vafn_gym.ScriptedController (no trained agent)")
+    parser.add_argument("--pretrained", default=None, help="run the packaged policy of this algorithm (e.g. sac)")
+    parser.add_argument("--n-test", type=int, default=0, help="score on N held-out test instructions instead")
     parser.add_argument("-n", "--n-timesteps", type=int, default=1000)
     parser.add_argument("--instruction", default=None, help="fixed instruction, e.g. 2,3,1,3 (default: sampled)")
     parser.add_argument("--env-kwargs", nargs="*", default=[], help="extra env kwargs as key:value (values eval'd)")
@@ -140,13 +153,22 @@ def main(argv: list[str] | None = None) -> list[dict[str, float]]:
         parser.error("--render-mode human needs a display; use --record out.gif on a headless machine")
     register_algorithms()
     stats = None
-    if args.scripted:
-        policy, env_kwargs = vafn_gym.ScriptedController(), {}
-    else:
+    env_kwargs: dict = {}
+    if args.pretrained is not None:
+        from vafn_sb3 import load_pretrained
+
+        policy = load_pretrained(args.pretrained, env_id=args.env)
+    elif not args.scripted:
         policy, env_kwargs, stats = load_run(args.algo, args.env, args.folder, args.exp_id, args.load_best)
     for item in args.env_kwargs:
         key, _, value = item.partition(":")
         env_kwargs[key] = eval(value)  # same convention as the zoo's --env-kwargs
+    if args.scripted:
+        probe = gym.make(args.env, **env_kwargs)
+        policy = vafn_gym.ScriptedController.for_env(probe)
+        probe.close()
+    if args.n_test > 0:
+        return evaluate_held_out(policy, args.env, env_kwargs, args.n_test)
     if args.instruction is not None:
         env_kwargs["instruction"] = args.instruction
     return run(policy, args.env, env_kwargs, args.n_timesteps, args.render_mode, args.record, stats,

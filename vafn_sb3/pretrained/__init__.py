@@ -1,0 +1,56 @@
+"""Pretrained policies shipped with the package, as weights-only files that cannot execute code when loaded.
+
+Each ``<algo>__<EnvName>.zip`` (written by :func:`vafn_sb3.save_weights`) has a ``<algo>__<EnvName>.json`` beside it
+with the training command, its wall/CPU time and the held-out evaluation of exactly that file
+(``benchmarks/export_pretrained.py`` writes both).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+
+PRETRAINED_DIR = Path(__file__).resolve().parent
+
+
+def _stem(algo: str, env_id: str) -> str:
+    return f"{algo}__{env_id.replace('/', '-')}"
+
+
+def available_pretrained() -> list[tuple[str, str]]:
+    """Every shipped ``(algo, env_id)`` pair."""
+    pairs = []
+    for meta in sorted(PRETRAINED_DIR.glob("*.json")):
+        info = json.loads(meta.read_text())
+        pairs.append((info["algo"], info["env_id"]))
+    return pairs
+
+
+def pretrained_info(algo: str, env_id: str = "VAFN/ThreeArmReach-v1") -> dict[str, Any]:
+    """The metadata of a shipped policy: training command, wall/CPU time, held-out evaluation."""
+    path = PRETRAINED_DIR / f"{_stem(algo, env_id)}.json"
+    if not path.is_file():
+        listing = ", ".join(f"{a} on {e}" for a, e in available_pretrained()) or "none"
+        raise ValueError(f"no pretrained {algo!r} policy for {env_id!r}; available: {listing}")
+    return json.loads(path.read_text())
+
+
+def load_pretrained(algo: str, env_id: str = "VAFN/ThreeArmReach-v1", env: gym.Env | None = None) -> Any:
+    """The shipped policy of ``algo`` for ``env_id`` as an SB3 model (``ValueError`` listing what is available).
+
+    :param algo: zoo key of the algorithm, e.g. ``"sac"`` or ``"maml_sac"``.
+    :param env_id: the env it was trained on.
+    :param env: optionally attach an env (needed only to continue training).
+    """
+    from vafn_sb3.common.serialization import load_weights
+
+    pretrained_info(algo, env_id)  # the clear error for unknown pairs
+    return load_weights(PRETRAINED_DIR / f"{_stem(algo, env_id)}.zip", env=env)
+
+
+def pretrained_path(algo: str, env_id: str) -> Path:
+    """Where the weights file of ``(algo, env_id)`` lives (or would live)."""
+    return PRETRAINED_DIR / f"{_stem(algo, env_id)}.zip"
