@@ -12,13 +12,14 @@ from stable_baselines3.common.env_util import make_vec_env
 from torch.func import functional_call
 
 import vafn_gym  # noqa: F401  (registers the env IDs)
-from vafn_gym.constants import ACTION_DIM, OBS_DIM
-from vafn_gym.tasks import TaskSampler
+from vafn_gym import InstructionBenchmark
 from vafn_sb3.common.adaptation import Adaptable, SupportSet, collect_support, evaluate_adaptation
 from vafn_sb3.maml_sac import MAMLSAC
 from vafn_sb3.maml_sac.functional import clip_gradients, inner_adapt, parameters_of, query_losses
 
-ENV_ID = "VAFN/ThreeArmReachHidden-v0"
+#: The 3-arm joint spaces (15-D observation, 9-D action).
+OBS_DIM, ACTION_DIM = 15, 9
+ENV_ID = "VAFN/ThreeArmReachHidden-v1"
 #: Short episodes so that CI-sized rollouts contain complete episodes.
 ENV_KWARGS = {"max_length": 1, "max_episode_steps": 30}
 TINY = {"net_arch": [16, 16]}
@@ -154,7 +155,7 @@ def snapshot(model: MAMLSAC) -> list[torch.Tensor]:
 def test_adapt_leaves_model_bit_identical_and_adapts(model):
     model.learn(64)  # give the optimisers some state
     env = gym.make(ENV_ID, **ENV_KWARGS)
-    task = TaskSampler("test", "hidden_targets", 1, 1).fixed_set(1)[0]
+    task = InstructionBenchmark(ENV_ID, 1, 1, n_test=1).test_tasks[0]
     before, buffer_pos = snapshot(model), model.replay_buffer.pos
     assert isinstance(model, Adaptable)
     adapted = model.adapt(env, task=task, n_support=32, k=3, seed=0)
@@ -195,7 +196,7 @@ def test_bad_arguments_raise(model):
     with pytest.raises(ValueError, match="n_support"):
         collect_support(model, env, None, 0, seed=0)
     with pytest.raises(ValueError, match="observation shape"):
-        model.adapt(gym.make("VAFN/ThreeArmReachGoal-v0", **ENV_KWARGS), k=1)
+        model.adapt(gym.make("VAFN/ThreeArmReachGoal-v1", **ENV_KWARGS), k=1)
 
 
 def test_nstep_plan_matches_definition():
@@ -212,7 +213,7 @@ def test_nstep_plan_matches_definition():
 
 
 def test_evaluate_adaptation_rows(model):
-    tasks = TaskSampler("test", "hidden_targets", 1, 1).fixed_set(2)
+    tasks = InstructionBenchmark(ENV_ID, 1, 1, n_test=2).test_tasks
     rows = evaluate_adaptation(model, ENV_ID, tasks, n_support=16, k_values=[0, 2], n_eval_episodes=1,
                                env_kwargs=ENV_KWARGS)
     assert [(r["task_index"], r["k"]) for r in rows] == [(0, 0), (0, 2), (1, 0), (1, 2)]

@@ -16,18 +16,19 @@ from vafn_gym import ScriptedController
 from vafn_gym.constants import SUCCESS_TOLERANCE
 from vafn_sb3.maml_sac import MAMLSAC
 from vafn_sb3.online import OnlineController
+from zoo.plot import plot_online_distances
 
 torch.set_num_threads(1)
 
 
 def make_stream(**kwargs) -> gym.Env:
     """A stream env fed only by the test (no arrival process), dequeued by the controller."""
-    return gym.make("VAFN/ThreeArmStream-v0", arrivals=None, auto_dequeue=False, horizon=5000, **kwargs)
+    return gym.make("VAFN/ThreeArmStream-v1", arrivals=None, auto_dequeue=False, horizon=5000, **kwargs)
 
 
 def test_holds_on_empty_queue():
     env = make_stream()
-    controller = OnlineController(ScriptedController(), env)
+    controller = OnlineController(ScriptedController.for_env(env), env)
     controller.run(30)
     assert controller.log == [] and env.unwrapped.holding
     distances = np.asarray(controller.trace["distances"])  # to each arm's home point while holding
@@ -36,7 +37,7 @@ def test_holds_on_empty_queue():
 
 def test_fifo_order_and_malformed_instruction_is_skipped():
     env = make_stream()
-    controller = OnlineController(ScriptedController(), env)
+    controller = OnlineController(ScriptedController.for_env(env), env)
     queue = env.unwrapped.queue
     controller.run(5)
     queue.enqueue("2,3")
@@ -57,7 +58,7 @@ def test_fifo_order_and_malformed_instruction_is_skipped():
 
 def test_instructions_enqueued_from_another_thread():
     env = make_stream()
-    controller = OnlineController(ScriptedController(), env)
+    controller = OnlineController(ScriptedController.for_env(env), env)
     queue = env.unwrapped.queue
 
     def producer() -> None:
@@ -75,7 +76,7 @@ def test_instructions_enqueued_from_another_thread():
 
 
 def test_adapting_controller_leaves_model_untouched_and_writes_outputs(tmp_path):
-    model = MAMLSAC("MlpPolicy", gym.make("VAFN/ThreeArmReach-v0", max_length=1), policy_kwargs={"net_arch": [16, 16]},
+    model = MAMLSAC("MlpPolicy", gym.make("VAFN/ThreeArmReach-v1", max_length=1), policy_kwargs={"net_arch": [16, 16]},
                     n_support=16, inner_steps=2, seed=0)
     before = [t.clone() for t in model.policy.state_dict().values()]
     env = make_stream(instruction_timeout=20)
@@ -93,14 +94,15 @@ def test_adapting_controller_leaves_model_untouched_and_writes_outputs(tmp_path)
     rows = list(csv.DictReader(controller.write_csv(tmp_path / "log.csv").open()))
     assert [row["instruction"] for row in rows] == ["2,1", "3"]
     assert {"arrival_time", "adaptation_time_s", "first_action_time", "completion_step", "success", "collisions"} <= set(rows[0])
-    assert controller.plot(tmp_path / "distances.png").stat().st_size > 0
+    assert plot_online_distances(controller, tmp_path / "distances.png").stat().st_size > 0
     controller.close()
 
 
 def test_rejects_auto_dequeue_and_non_stream_envs():
+    scripted = ScriptedController.for_env(make_stream())
     with pytest.raises(ValueError, match="auto_dequeue"):
-        OnlineController(ScriptedController(), gym.make("VAFN/ThreeArmStream-v0", arrivals=None))
-    with pytest.raises(TypeError, match="ThreeArmStreamEnv"):
-        OnlineController(ScriptedController(), gym.make("VAFN/ThreeArmReach-v0"))
+        OnlineController(scripted, gym.make("VAFN/ThreeArmStream-v1", arrivals=None))
+    with pytest.raises(TypeError, match="MultiArmStreamEnv"):
+        OnlineController(scripted, gym.make("VAFN/ThreeArmReach-v1"))
     with pytest.raises(TypeError, match="adapt"):
-        OnlineController(ScriptedController(), make_stream(), k=1)
+        OnlineController(scripted, make_stream(), k=1)

@@ -21,8 +21,8 @@ from zoo.experiment import WORKER_ATTR, _merge_policy_kwargs, _yaml_policy_kwarg
 from zoo.registry import UNAVAILABLE, VAFN_ALGOS, register_algorithms  # noqa: E402
 from zoo.train import complete_argv, main as train_main  # noqa: E402
 
-ENV_ID = "VAFN/ThreeArmReach-v0"
-ENV_NAME = "VAFN-ThreeArmReach-v0"
+ENV_ID = "VAFN/ThreeArmReach-v1"
+ENV_NAME = "VAFN-ThreeArmReach-v1"
 ALL_ALGOS = ["sac", *VAFN_ALGOS]
 #: Per-family overrides that keep a test run to a few hundred steps (everything else comes from the YAML).
 FAST_PARAMS = {
@@ -219,7 +219,7 @@ def test_meta_eval_callback_logs_post_adaptation_performance(tmp_path: Path) -> 
     from vafn_sb3 import MTSAC
     from vafn_sb3.callbacks import MetaEvalCallback
 
-    env = gym.make("VAFN/ThreeArmReachHidden-v0", max_length=1)
+    env = gym.make("VAFN/ThreeArmReachHidden-v1", max_length=1)
     model = MTSAC("MlpPolicy", env, learning_starts=50, batch_size=32, policy_kwargs={"net_arch": [32, 32]}, seed=0)
     model.set_logger(configure(str(tmp_path), ["csv"]))
     callback = MetaEvalCallback(eval_freq=60, k_values=(0, 2), n_tasks=1, n_support=16, max_length=1, seed=0)
@@ -261,7 +261,7 @@ def test_reproduce_smoke_writes_every_artefact(tmp_path: Path) -> None:
     resumed = _reproduce_smoke(tmp_path, "--resume", "--skip-table1")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     runs = sorted(p.name for p in (tmp_path / "work" / "logs").glob("seed0/*/*") if p.is_dir())
-    assert runs == ["VAFN-ThreeArmReachHidden-v0_1"] * 2, f"--resume retrained: {runs}"
+    assert runs == ["VAFN-ThreeArmReachHidden-v1_1"] * 2, f"--resume retrained: {runs}"
 
 
 @pytest.mark.parametrize("algo", ALL_ALGOS)
