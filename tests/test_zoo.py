@@ -17,7 +17,8 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
 from zoo import plot as zoo_plot  # noqa: E402
-from zoo.experiment import WORKER_ATTR, _merge_policy_kwargs, _yaml_policy_kwargs, open_storage, recover_stale_trials  # noqa: E402
+from zoo.experiment import _merge_policy_kwargs, _yaml_policy_kwargs  # noqa: E402
+from zoo.tuning import WORKER_ATTR, open_storage, recover_stale_trials  # noqa: E402
 from zoo.registry import UNAVAILABLE, VAFN_ALGOS, register_algorithms  # noqa: E402
 from zoo.train import complete_argv, main as train_main  # noqa: E402
 

@@ -9,73 +9,22 @@
 from __future__ import annotations
 
 import contextvars
-import os
-import socket
-from pathlib import Path
 from typing import Any
 
 import optuna
-from optuna.trial import TrialState
 from rl_zoo3.exp_manager import ExperimentManager
 from rl_zoo3.hyperparams_opt import HYPERPARAMS_SAMPLER
 from stable_baselines3.common.callbacks import EvalCallback
 
 from vafn_sb3.callbacks import RolloutCollisionCallback, SuccessCollisionEvalCallback
+from zoo.tuning import WORKER_ATTR, recover_stale_trials, worker_id
 
 #: Monitor columns written for VAFN envs (success and "any collision this episode").
 VAFN_INFO_KEYWORDS = ("is_success", "collided")
-#: Trial user attribute naming the worker process that runs it.
-WORKER_ATTR = "worker"
 #: Hyperparameter key carrying a stored trial's policy_kwargs until they are merged with the YAML's.
 TUNED_POLICY_KWARGS = "tuned_policy_kwargs"
 
 _yaml_policy_kwargs: contextvars.ContextVar[dict[str, Any]] = contextvars.ContextVar("yaml_policy_kwargs", default={})
-
-
-def worker_id() -> str:
-    """``host:pid`` of this process."""
-    return f"{socket.gethostname()}:{os.getpid()}"
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def open_storage(storage: str) -> optuna.storages.BaseStorage:
-    """A ``*.log`` path as a journal-file storage, anything else as an RDB URL (sqlite/postgresql/mysql)."""
-    if storage.endswith(".log"):
-        Path(storage).parent.mkdir(parents=True, exist_ok=True)
-        return optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(storage))
-    return optuna.storages.RDBStorage(storage)
-
-
-def recover_stale_trials(storage: str, study_name: str) -> list[int]:
-    """Mark RUNNING trials of dead workers on this host as FAIL and re-queue their parameters; returns their numbers.
-
-    Trials of other hosts are left alone (their liveness cannot be checked from here; use an RDB storage with
-    Optuna heartbeats for multi-machine studies).
-    """
-    try:
-        study = optuna.load_study(study_name=study_name, storage=open_storage(storage))
-    except KeyError:  # the study does not exist yet
-        return []
-    host = socket.gethostname()
-    recovered = []
-    for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
-        owner = str(trial.user_attrs.get(WORKER_ATTR, ""))
-        owner_host, _, pid = owner.rpartition(":")
-        if owner_host != host or not pid.isdigit() or _pid_alive(int(pid)):
-            continue
-        study._storage.set_trial_state_values(trial._trial_id, TrialState.FAIL)
-        study.enqueue_trial(trial.params, user_attrs={"retry_of": trial.number})
-        recovered.append(trial.number)
-    return recovered
 
 
 def _merge_policy_kwargs(sampler: Any) -> Any:

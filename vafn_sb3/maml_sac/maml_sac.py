@@ -20,7 +20,6 @@ coefficient α, the target critic φ̄ and the inner step sizes.
 
 from __future__ import annotations
 
-import time
 from collections import deque
 from typing import Any, ClassVar, Sequence, TypeVar
 
