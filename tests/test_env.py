@@ -56,6 +56,7 @@ def rss_mb() -> float:
 
 
 # --- API conformance ---
+@pytest.mark.filterwarnings("error::UserWarning")  # the checkers' warnings count
 @pytest.mark.parametrize("env_id", ENV_IDS)
 def test_check_env(env_id):
     env = gym.make(env_id)
