@@ -9,7 +9,8 @@ It works for any number of arms and any robot: it only needs each arm's home poi
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -52,7 +53,7 @@ class ScriptedController:
         self.reset()
 
     @classmethod
-    def for_env(cls, env: gym.Env) -> "ScriptedController":
+    def for_env(cls, env: gym.Env) -> ScriptedController:
         """A controller for ``env`` (any wrapper around a :class:`MultiArmEnv`)."""
         base = env.unwrapped
         return cls({arm_id: arm.home for arm_id, arm in base.arms.items()}, observe_goal=base.observe_goal)

@@ -5,7 +5,6 @@ Optional: needs the ``[pettingzoo]`` extra, and is imported only when used (``fr
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import numpy as np
@@ -33,16 +32,15 @@ class MultiArmParallelEnv(ParallelEnv):
         self.agents: list[str] = []
         self.render_mode = self.env.render_mode
         self._state = np.zeros(self.env.observation_space.shape, dtype=np.float32)
+        self._action_space = spaces.Box(-1.0, 1.0, shape=(ACTION_PER_ARM,), dtype=np.float32)
 
-    @functools.lru_cache(maxsize=None)
     def observation_space(self, agent: str) -> spaces.Box:
         """The (shared) observation space of ``agent``."""
         return self.env.observation_space
 
-    @functools.lru_cache(maxsize=None)
     def action_space(self, agent: str) -> spaces.Box:
-        """The 3-D end-effector velocity space of ``agent``."""
-        return spaces.Box(-1.0, 1.0, shape=(ACTION_PER_ARM,), dtype=np.float32)
+        """The 3-D end-effector velocity space of ``agent`` (the same object on every call)."""
+        return self._action_space
 
     def state(self) -> np.ndarray:
         """The global observation."""

@@ -7,7 +7,8 @@ episode *means* lives here, in one place.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -48,7 +49,7 @@ class RewardConfig:
                 raise ValueError(f"reward weight {item.name} must be a finite number, got {value!r}")
 
     @classmethod
-    def from_kwargs(cls, kwargs: Mapping[str, Any] | None) -> "RewardConfig":
+    def from_kwargs(cls, kwargs: Mapping[str, Any] | None) -> RewardConfig:
         """A config from a dict of overrides; ``ValueError`` naming any unknown key."""
         kwargs = dict(kwargs or {})
         known = {item.name for item in fields(cls)}

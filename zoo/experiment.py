@@ -24,7 +24,7 @@ VAFN_INFO_KEYWORDS = ("is_success", "collided")
 #: Hyperparameter key carrying a stored trial's policy_kwargs until they are merged with the YAML's.
 TUNED_POLICY_KWARGS = "tuned_policy_kwargs"
 
-_yaml_policy_kwargs: contextvars.ContextVar[dict[str, Any]] = contextvars.ContextVar("yaml_policy_kwargs", default={})
+_yaml_policy_kwargs: contextvars.ContextVar[dict[str, Any]] = contextvars.ContextVar("yaml_policy_kwargs")
 
 
 def _merge_policy_kwargs(sampler: Any) -> Any:
@@ -33,7 +33,7 @@ def _merge_policy_kwargs(sampler: Any) -> Any:
     def sample(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
         params = sampler(trial, n_actions, n_envs, additional_args)
         if "policy_kwargs" in params:
-            params["policy_kwargs"] = {**_yaml_policy_kwargs.get(), **params["policy_kwargs"]}
+            params["policy_kwargs"] = {**_yaml_policy_kwargs.get({}), **params["policy_kwargs"]}
         return params
 
     sample.merges_policy_kwargs = True  # type: ignore[attr-defined]

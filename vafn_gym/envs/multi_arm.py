@@ -7,7 +7,8 @@ three arms that is the paper's 15-D observation and 9-D action.
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -277,7 +278,7 @@ class MultiArmEnv(gym.Env):
                 raise TypeError(f"dtype {raw.dtype}")
             array = raw.astype(np.float64)
         except (TypeError, ValueError, OverflowError) as error:
-            raise ValueError(f"action must be {self.layout.action_dim} real numbers; got entries that are not ({error})")
+            raise ValueError(f"action must be {self.layout.action_dim} real numbers; got entries that are not ({error})") from error
         if array.shape != (self.layout.action_dim,):
             raise ValueError(f"action must have shape ({self.layout.action_dim},), got {array.shape}")
         if not np.all(np.isfinite(array)):

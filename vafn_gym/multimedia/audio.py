@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from typing import Union
 
 import numpy as np
 
@@ -17,7 +16,7 @@ from vafn_gym.multimedia.constants import (
     SILENCE_DBFS,
 )
 
-AudioSource = Union[str, os.PathLike, np.ndarray, "tuple[np.ndarray, int]"]
+AudioSource = str | os.PathLike | np.ndarray | tuple[np.ndarray, int]
 _INT_SCALE = {np.dtype(np.int16): 32768.0, np.dtype(np.int32): 2147483648.0, np.dtype(np.uint8): 128.0}
 
 
@@ -35,7 +34,7 @@ class Audio:
         return len(self.waveform) / self.sample_rate
 
 
-def read_audio_file(path: Union[str, os.PathLike]) -> tuple[np.ndarray, int]:
+def read_audio_file(path: str | os.PathLike) -> tuple[np.ndarray, int]:
     """Read a WAV/FLAC/OGG file with soundfile; corrupt or truncated files raise ValueError naming the file.
 
     :param path: file to read.

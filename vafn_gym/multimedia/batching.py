@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -66,7 +66,7 @@ def bucketed_batches(data: TrainingData, batch_size: int, rng: np.random.Generat
     return [batches[i] for i in rng.permutation(pool)]
 
 
-def make_batch(data: TrainingData, indices: np.ndarray, rng: Optional[np.random.Generator],
+def make_batch(data: TrainingData, indices: np.ndarray, rng: np.random.Generator | None,
                corrupted: bool = False) -> dict[str, torch.Tensor]:
     """Build a training (``rng`` given: augmented) or evaluation (``rng`` None: clean, or ``corrupted``) batch.
 

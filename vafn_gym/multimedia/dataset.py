@@ -12,7 +12,8 @@ import multiprocessing
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Optional, Sequence
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -39,14 +40,14 @@ class ItemSpec:
     """Everything needed to render one item: the arm ids, how they are spoken and how they are drawn."""
 
     arms: tuple[int, ...]
-    voice: "Voice"
+    voice: Voice
     template: int
     empty_phrase: int
     image_seed: int
     heldout: bool
 
 
-def item_spec(seed: int, split: str, index: int, difficulty: Optional[str] = None) -> ItemSpec:
+def item_spec(seed: int, split: str, index: int, difficulty: str | None = None) -> ItemSpec:
     """The deterministic specification of item ``index`` of ``split``.
 
     :param seed: dataset seed.
@@ -93,7 +94,7 @@ class RawItems:
     specs: list[ItemSpec]
 
 
-def _render_range(args: tuple[int, str, int, int, Optional[str]]) -> RawItems:
+def _render_range(args: tuple[int, str, int, int, str | None]) -> RawItems:
     from vafn_gym.multimedia.speech import ESPEAK_SAMPLE_RATE
 
     seed, split, start, count, difficulty = args
@@ -112,7 +113,7 @@ def _quiet_worker() -> None:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
-def generate_raw(seed: int, split: str, count: int, difficulty: Optional[str] = None, start: int = 0,
+def generate_raw(seed: int, split: str, count: int, difficulty: str | None = None, start: int = 0,
                  workers: int = 1) -> RawItems:
     """Render ``count`` items in fresh processes (one per shard), so the audio is reproducible.
 
@@ -177,7 +178,7 @@ class TrainingData:
         return len(self.lengths)
 
     @classmethod
-    def load(cls, paths: Sequence[str]) -> "TrainingData":
+    def load(cls, paths: Sequence[str]) -> TrainingData:
         """Concatenate cached shard files.
 
         :param paths: shard files written by :func:`build_cache`.

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional
 
 import numpy as np
 import torch
@@ -89,7 +88,7 @@ class Fused:
     weakest: float
 
 
-def fuse(readings: dict[str, Decoded], decoder: torch.nn.Module, weights: Optional[dict[str, float]] = None) -> Fused:
+def fuse(readings: dict[str, Decoded], decoder: torch.nn.Module, weights: dict[str, float] | None = None) -> Fused:
     """Fuse per-modality readings in Φ.
 
     When all modalities read the same number of tokens, each token's Φ embeddings are averaged with weights

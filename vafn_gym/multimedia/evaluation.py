@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Callable, Optional
+from collections.abc import Callable
 
 import numpy as np
 
@@ -69,7 +69,7 @@ def corrupted_inputs(items: RawItems, eval_seed: int, index: int, row: str) -> d
 
 
 def run_cell(transcribe: Callable[..., object], items: RawItems, eval_seed: int, row: str,
-             limit: Optional[int] = None) -> CellResult:
+             limit: int | None = None) -> CellResult:
     """Transcribe every item of ``items`` for ``row``; time each call (wall and thread CPU; features included,
     corruption excluded).
 

@@ -28,7 +28,7 @@ def frame_params(sample_rate: int) -> tuple[int, int, int]:
 
 
 @lru_cache(maxsize=8)
-def mel_filterbank(sample_rate: int) -> tuple["torch.Tensor", "torch.Tensor"]:
+def mel_filterbank(sample_rate: int) -> tuple[torch.Tensor, torch.Tensor]:
     """(N_MELS, n_fft // 2 + 1) mel filterbank and Hann window for ``sample_rate`` (built once, cached).
 
     :param sample_rate: audio sample rate in Hz.
@@ -55,7 +55,7 @@ def num_frames(num_samples: int, sample_rate: int) -> int:
     return num_samples // hop + 1
 
 
-def log_mel_batch(waveforms: "torch.Tensor", lengths: "torch.Tensor", sample_rate: int) -> tuple["torch.Tensor", "torch.Tensor"]:
+def log_mel_batch(waveforms: torch.Tensor, lengths: torch.Tensor, sample_rate: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-utterance mean/variance-normalised log-mel features of a zero-padded batch.
 
     :param waveforms: (B, N) float tensor.
@@ -80,7 +80,7 @@ def log_mel_batch(waveforms: "torch.Tensor", lengths: "torch.Tensor", sample_rat
     return normalised, frames
 
 
-def log_mel(waveform: np.ndarray, sample_rate: int) -> "torch.Tensor":
+def log_mel(waveform: np.ndarray, sample_rate: int) -> torch.Tensor:
     """Normalised log-mel features (1, N_MELS, T) of one mono clip.
 
     :param waveform: float32 samples.

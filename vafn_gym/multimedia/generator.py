@@ -7,7 +7,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional, Union
+from typing import Any
 
 import numpy as np
 
@@ -64,7 +64,7 @@ class InstructionGenerator:
     :param low_confidence: threshold under which a result is flagged ``low_confidence``.
     """
 
-    def __init__(self, model: Any, metadata: Optional[dict] = None, low_confidence: float = LOW_CONFIDENCE) -> None:
+    def __init__(self, model: Any, metadata: dict | None = None, low_confidence: float = LOW_CONFIDENCE) -> None:
         import torch
 
         self.model = model.eval()
@@ -75,7 +75,7 @@ class InstructionGenerator:
         self._torch = torch
 
     @classmethod
-    def load(cls, path: Union[str, os.PathLike, None] = None, warm: bool = True) -> "InstructionGenerator":
+    def load(cls, path: str | os.PathLike | None = None, warm: bool = True) -> InstructionGenerator:
         """Load a checkpoint (default: the packaged one); ``warm`` pays librosa's slow first call now.
 
         :param path: ``.pt`` file written by the training command (its ``.json`` metadata must sit beside it).
@@ -147,8 +147,8 @@ class InstructionGenerator:
             return greedy_decode(phi, self.model.decode(phi))
 
     # --- public API ---
-    def transcribe(self, audio: Optional[AudioSource] = None, image: Optional[ImageSource] = None,
-                   code: Optional[Union[str, list, Instruction]] = None, sample_rate: Optional[int] = None) -> Transcription:
+    def transcribe(self, audio: AudioSource | None = None, image: ImageSource | None = None,
+                   code: str | list | Instruction | None = None, sample_rate: int | None = None) -> Transcription:
         """Read an instruction from any non-empty subset of modalities.
 
         With several modalities, unusable ones (silent audio, blank image, …) are dropped with a warning; if none is

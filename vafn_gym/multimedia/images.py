@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-from typing import Union
 
 import numpy as np
 
@@ -16,7 +15,7 @@ from vafn_gym.multimedia.constants import (
     MIN_IMAGE_WIDTH,
 )
 
-ImageSource = Union[str, os.PathLike, np.ndarray]
+ImageSource = str | os.PathLike | np.ndarray
 #: Gaussian blur kernel (pixels, at canonical scale) used only to locate the content box.
 _BOX_BLUR = 5
 #: Images taller than this are first downscaled to it (speed; the output has IMAGE_HEIGHT rows).
@@ -29,7 +28,7 @@ def _cv2():
     return cv2
 
 
-def read_image_file(path: Union[str, os.PathLike]) -> np.ndarray:
+def read_image_file(path: str | os.PathLike) -> np.ndarray:
     """Read an image file unchanged; a missing, corrupt or truncated file raises ValueError naming it.
 
     :param path: file to read.

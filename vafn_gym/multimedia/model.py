@@ -32,7 +32,7 @@ class ModelConfig:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict) -> "ModelConfig":
+    def from_dict(cls, data: dict) -> ModelConfig:
         """Inverse of :meth:`to_dict`."""
         data = dict(data)
         data["image_channels"] = tuple(data["image_channels"])
@@ -108,9 +108,9 @@ class InstructionModel(nn.Module):
     :param config: network sizes.
     """
 
-    def __init__(self, config: ModelConfig = ModelConfig()) -> None:
+    def __init__(self, config: ModelConfig | None = None) -> None:
         super().__init__()
-        self.config = config
+        self.config = config if config is not None else ModelConfig()
         self.encoders = nn.ModuleDict({
             "audio": AudioEncoder(config.audio_channels),
             "image": ImageEncoder(config.image_channels),

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import ctypes
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -107,7 +107,7 @@ def sample_voice(rng: np.random.Generator, heldout: bool) -> Voice:
 class EspeakSynthesizer:
     """Thin ctypes wrapper around libespeak-ng in synchronous mode; one per process (the library is not thread-safe)."""
 
-    _instance: Optional["EspeakSynthesizer"] = None
+    _instance: EspeakSynthesizer | None = None
 
     def __init__(self) -> None:
         try:
@@ -141,7 +141,7 @@ class EspeakSynthesizer:
             self._seed_random.argtypes = [ctypes.c_long]
 
     @classmethod
-    def shared(cls) -> "EspeakSynthesizer":
+    def shared(cls) -> EspeakSynthesizer:
         """The process-wide synthesiser (created on first use)."""
         if cls._instance is None:
             cls._instance = cls()

@@ -7,7 +7,8 @@ import queue as _queue
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from vafn_gym.multimedia.constants import LOW_CONFIDENCE
 
@@ -19,7 +20,7 @@ def _describe(error: BaseException) -> str:
     """``"Type: message"`` of an exception, cut to a readable length."""
     try:
         message = str(error)
-    except Exception:  # an exception with a broken __str__ must not take the worker down with it
+    except Exception:  # noqa: BLE001 - an exception with a broken __str__ must not take the worker down with it
         message = "<unprintable message>"
     if len(message) > 200:
         message = message[:197] + "..."
@@ -92,14 +93,14 @@ class MultimediaStream:
         self.events: list[StreamEvent] = []
         #: Failures of the worker's own machinery (a raising ``on_event`` callback, ...), oldest first.
         self.errors: list[str] = []
-        self._requests: "_queue.Queue[_Request]" = _queue.Queue(max_pending)
+        self._requests: _queue.Queue[_Request] = _queue.Queue(max_pending)
         self._tickets = itertools.count()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
 
     # --- lifecycle ---
-    def start(self) -> "MultimediaStream":
+    def start(self) -> MultimediaStream:
         """Start the worker thread (idempotent)."""
         if self._thread is None or not self._thread.is_alive():
             self._stop.clear()
@@ -120,7 +121,7 @@ class MultimediaStream:
         if self._thread is not None:
             self._thread.join(None if deadline is None else max(0.0, deadline - time.perf_counter()))
 
-    def __enter__(self) -> "MultimediaStream":
+    def __enter__(self) -> MultimediaStream:
         return self.start()
 
     def __exit__(self, *exc: Any) -> None:
@@ -168,7 +169,7 @@ class MultimediaStream:
         if self.on_event is not None:
             try:
                 self.on_event(event)
-            except BaseException as error:  # noqa: B036 - a faulty callback (even SystemExit) must not kill the stream
+            except BaseException as error:  # noqa: BLE001 - a faulty callback (even SystemExit) must not kill the stream
                 self._error(f"on_event callback raised {_describe(error)} for ticket {event.ticket}")
 
     def _error(self, message: str) -> None:
@@ -179,7 +180,7 @@ class MultimediaStream:
         started = time.perf_counter()
         try:
             result = self.generator.transcribe(**request.kwargs)
-        except BaseException as error:  # noqa: B036 - bad input of any kind becomes an event, never a dead thread
+        except BaseException as error:  # noqa: BLE001 - bad input of any kind becomes an event, never a dead thread
             return StreamEvent(request.ticket, "error", _describe(error),
                                latency_s=time.perf_counter() - request.submitted_at)
         transcribe_s = time.perf_counter() - started
@@ -195,7 +196,7 @@ class MultimediaStream:
             latency = time.perf_counter() - request.submitted_at
             metadata["latency_s"] = latency
             self.queue.enqueue(result.instruction, source="+".join(result.modalities), metadata=metadata)
-        except Exception as error:  # QueueFullError, or anything the queue rejects
+        except Exception as error:  # noqa: BLE001 - QueueFullError, or anything the queue rejects
             return StreamEvent(request.ticket, "error", f"{type(error).__name__}: {error}", result,
                                time.perf_counter() - request.submitted_at)
         return StreamEvent(request.ticket, "enqueued", "", result, latency)
@@ -208,7 +209,7 @@ class MultimediaStream:
                 continue
             try:
                 self._record(self._handle(request))
-            except BaseException as error:  # noqa: B036 - last line of defence: the worker must outlive anything
+            except BaseException as error:  # noqa: BLE001 - last line of defence: the worker must outlive anything
                 self._error(f"ticket {request.ticket}: {_describe(error)}")
                 self._record(StreamEvent(request.ticket, "error", _describe(error)))
             finally:

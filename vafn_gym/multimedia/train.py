@@ -117,7 +117,7 @@ def _summary_writer(logdir: Path):
     except ImportError:
         import warnings
 
-        warnings.warn("tensorboard is not installed: training runs without TensorBoard logs")
+        warnings.warn("tensorboard is not installed: training runs without TensorBoard logs", stacklevel=2)
         return _NoWriter()
     return SummaryWriter(str(logdir))
 

@@ -23,7 +23,8 @@ import zipfile
 import zlib
 from pathlib import Path
 from types import ModuleType
-from typing import Any, Callable, ClassVar
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import torch as th

@@ -21,7 +21,8 @@ coefficient α, the target critic φ̄ and the inner step sizes.
 from __future__ import annotations
 
 from collections import deque
-from typing import Any, ClassVar, Sequence, TypeVar
+from collections.abc import Sequence
+from typing import Any, ClassVar, TypeVar
 
 import gymnasium as gym
 import numpy as np
@@ -411,7 +412,8 @@ class MAMLSAC(AtomicSaveMixin, SAC):
             def task_objective(task_support: dict[str, torch.Tensor], task_query: dict[str, torch.Tensor]):
                 return query_losses(
                     self.actor_distribution, self.critic, actor_params, critic_params, target_params, task_support,
-                    task_query, ent_coef, actor_lr, critic_lr, self.inner_steps, self.gamma, self.second_order,
+                    task_query, ent_coef, actor_lr, critic_lr,  # noqa: B023 - called within this iteration only
+                    self.inner_steps, self.gamma, self.second_order,
                     self.inner_max_grad_norm, self.inner_centered_critic,
                 )
 
