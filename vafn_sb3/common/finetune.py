@@ -5,8 +5,8 @@ seeds as MAML-SAC), then runs ``k`` gradient steps of the algorithm's *own* ``tr
 (full batch: every step sees all ``n_support`` transitions), with the algorithm's own optimisers, learning rates and
 target-network updates. It returns a deep copy of the fine-tuned policy and restores every parameter, optimiser state,
 target network, entropy coefficient, buffer and counter of the model in a ``finally`` block. This is the "multi-task
-pre-training + fine-tuning with the same support data and the same number of steps" baseline of Mandi et al. (NeurIPS
-2022), see ``shared/notes/algorithms-maml-marl.md`` section 2.3.
+pre-training + fine-tuning with the same support data and the same number of steps" baseline of Mandi et al., "On the
+Effectiveness of Fine-tuning Versus Meta-reinforcement Learning" (NeurIPS 2022).
 """
 
 from __future__ import annotations
@@ -105,8 +105,8 @@ class FineTuneAdaptation:
     #: Plain attributes that ``_fine_tune`` may replace temporarily; restored after adaptation.
     _adaptation_attributes: tuple[str, ...] = ("_n_updates", "replay_buffer", "lr_schedule")
     #: ``None``: fine-tune with the algorithm's own optimisers (Adam) at its learning rate. A float: plain SGD with this
-    #: step size for every optimiser instead, the "SGD at the inner learning rate" variant of
-    #: ``shared/notes/algorithms-maml-marl.md`` §2.3 (set it on the model, e.g. to MAML-SAC's inner step size).
+    #: step size for every optimiser instead, the "SGD at the inner learning rate" variant (set it on the model, e.g. to
+    #: MAML-SAC's inner step size).
     finetune_sgd_lr: float | None = None
 
     def adapt(
