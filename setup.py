@@ -1,13 +1,17 @@
-"""Installs the ``vafn`` distribution: packages ``vafn_gym`` (environments, instructions, queue, media) and ``vafn_sb3``."""
+"""Installs the ``vafn`` distribution: ``vafn_gym`` (environments, instructions, queue, media) and ``vafn_sb3``."""
 
 from setuptools import find_packages, setup
 
 EXTRAS = {
     "dev": ["pytest>=7", "pytest-xdist>=3", "pytest-timeout>=2"],
     # The speech synthesiser (espeakng-loader, GPL-3) is only used to generate training data; it is never vendored.
-    "media": ["librosa>=0.10", "soundfile>=0.12", "opencv-python-headless>=4.8", "scikit-learn>=1.3", "soxr>=0.3", "espeakng-loader>=0.2"],
+    "media": [
+        "librosa>=0.10", "soundfile>=0.12", "opencv-python-headless>=4.8", "scikit-learn>=1.3", "soxr>=0.3",
+        "espeakng-loader>=0.2",
+    ],
     "zoo": [
-        "rl_zoo3>=2.3", "optuna>=3.5", "tensorboard>=2.14", "matplotlib>=3.7", "pandas>=2.0", "scipy>=1.10", "imageio>=2.30",
+        "rl_zoo3>=2.3", "optuna>=3.5", "tensorboard>=2.14", "matplotlib>=3.7", "pandas>=2.0", "scipy>=1.10",
+        "imageio>=2.30",
     ],
     "pettingzoo": ["pettingzoo>=1.24"],
     "bench": ["panda-gym>=3.0.7"],

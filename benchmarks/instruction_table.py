@@ -39,8 +39,12 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--items", type=int, default=100, help="items per seed and difficulty")
     parser.add_argument("--checkpoint", default=None)
     parser.add_argument("--workers", type=int, default=2, help="data-generation processes")
-    parser.add_argument("--in-distribution", type=int, default=1, help="seeds of the in-distribution comparison (0: skip)")
-    parser.add_argument("--transfer-items", type=int, default=1000, help="training items for the cross-modal probe (0: skip)")
+    parser.add_argument(
+        "--in-distribution", type=int, default=1, help="seeds of the in-distribution comparison (0: skip)"
+    )
+    parser.add_argument(
+        "--transfer-items", type=int, default=1000, help="training items for the cross-modal probe (0: skip)"
+    )
     parser.add_argument("--out", type=Path, default=RESULTS / "instruction_table")
     return parser.parse_args()
 

@@ -140,7 +140,8 @@ def actor_parameters(name, policy):
 def test_actions_have_zero_jacobian_wrt_other_agents_observations(n_agents, agent_ids):
     obs = th.rand(1, n_agents * OBS_PER_AGENT)
     for name, actor in actor_means(untrained_policies(n_agents, agent_ids)).items():
-        jacobian = th.autograd.functional.jacobian(lambda o, actor=actor: actor(o)[0], obs)[:, 0, :]  # (action_dim, obs_dim)
+        # (action_dim, obs_dim)
+        jacobian = th.autograd.functional.jacobian(lambda o, actor=actor: actor(o)[0], obs)[:, 0, :]
         assert jacobian.shape == (n_agents * ACTION_PER_AGENT, n_agents * OBS_PER_AGENT)
         for i in range(n_agents):
             for j in range(n_agents):

@@ -73,7 +73,7 @@ class InstructionBenchmark:
         return EVAL_SEED + self.seed + task_index * 100 + episode
 
     def evaluate(self, policy: Any, n_tasks: int | None = None, deterministic: bool = True) -> list[dict[str, Any]]:
-        """Run ``policy`` once on each of the first ``n_tasks`` test tasks; one row per task (see :func:`run_episode`)."""
+        """Run ``policy`` once on each of the first ``n_tasks`` test tasks; a row per task (see :func:`run_episode`)."""
         env = self.make_env()
         rows = []
         try:

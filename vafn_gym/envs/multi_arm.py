@@ -278,7 +278,9 @@ class MultiArmEnv(gym.Env):
                 raise TypeError(f"dtype {raw.dtype}")
             array = raw.astype(np.float64)
         except (TypeError, ValueError, OverflowError) as error:
-            raise ValueError(f"action must be {self.layout.action_dim} real numbers; got entries that are not ({error})") from error
+            raise ValueError(
+                f"action must be {self.layout.action_dim} real numbers; got entries that are not ({error})"
+            ) from error
         if array.shape != (self.layout.action_dim,):
             raise ValueError(f"action must have shape ({self.layout.action_dim},), got {array.shape}")
         if not np.all(np.isfinite(array)):

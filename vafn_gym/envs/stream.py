@@ -1,4 +1,4 @@
-"""MultiArmStreamEnv: the long-horizon, queue-driven variant; instructions arrive through the Dynamic Instruction Queue."""
+"""MultiArmStreamEnv: the long-horizon, queue-driven variant; instructions come via the Dynamic Instruction Queue."""
 
 from __future__ import annotations
 
