@@ -1,11 +1,11 @@
 """Env steps/s of VAFN/ThreeArmReach-v1 against panda-gym's PandaReach-v3, and against the number of arms.
 
 Random actions, one thread, wrappers as ``gymnasium.make`` builds them. Table 1 rows: our default control step
-(5 × 1/240 s), our env at panda-gym's simulated time per step (10 × 1/240 s ≈ 0.042 s vs 0.04 s), the PettingZoo view,
-and PandaReach-v3 (needs the ``[bench]`` extra). Table 2: ``VAFN/MultiArmReach-v1`` with 2, 3, 4 and 6 KUKA arms.
+(5 × 1/240 s), our env at panda-gym's simulated time per step (10 × 1/240 s ≈ 0.042 s vs 0.04 s), the PettingZoo
+view, and PandaReach-v3 (needs the ``[bench]`` extra). Table 2: ``VAFN/MultiArmReach-v1`` with 2, 3, 4 and 6 KUKA arms.
 Rounds alternate between envs so that machine load hits all of them alike; the best round is reported.
 
-    python benchmarks/env_throughput.py [--steps 3000] [--rounds 3] [--arms 2 3 4 6] [--csv results/env_throughput.csv]
+    python benchmarks/env_throughput.py [--steps 3000] [--rounds 3] [--arms 2 3 4 6] [--csv FILE]
 """
 
 from __future__ import annotations
@@ -14,7 +14,8 @@ import argparse
 import csv
 import os
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -114,7 +115,9 @@ def print_peer_table(best: dict[str, float], rounds: int) -> list[dict[str, Any]
     for name, value in best.items():
         ratio = value / peer if peer else float("nan")
         print(f"| {name} | {value:.0f} | {f'{ratio:.2f}×' if peer else 'n/a'} |")
-        rows.append({"table": "peer", "env": name, "steps_per_s": round(value, 1), "ratio_to_panda_reach": round(ratio, 3)})
+        rows.append(
+            {"table": "peer", "env": name, "steps_per_s": round(value, 1), "ratio_to_panda_reach": round(ratio, 3)}
+        )
     return rows
 
 

@@ -21,7 +21,12 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 import vafn_gym  # noqa: E402,F401
-from vafn_gym import InstructionBenchmark, ScriptedController, difficulty_of, run_episode  # noqa: E402
+from vafn_gym import (  # noqa: E402
+    InstructionBenchmark,
+    ScriptedController,
+    difficulty_of,
+    run_episode,
+)
 
 Z_95 = 1.959963984540054
 
@@ -107,7 +112,7 @@ def main() -> None:
     print(summary_line("all", rows))
     failures = [r for r in rows if not r["success"] or r["collision"]]
     for row in failures[:10]:
-        print(f"  failed task {row['task_index']} ({row['task']}): success={row['success']} collision={row['collision']}")
+        print(f"  failed task {row['task_index']} ({row['task']}): collision={row['collision']}, steps={row['steps']}")
     if args.csv:
         with open(args.csv, "w", newline="") as handle:
             writer = csv.DictWriter(handle, fieldnames=list(rows[0]))

@@ -1,4 +1,4 @@
-"""MultiArmEnv / MultiArmStreamEnv (v1): API conformance, exact hold, task semantics, validation, the scripted ceiling."""
+"""MultiArmEnv and MultiArmStreamEnv (v1): API conformance, exact hold, task semantics, validation, scripted ceiling."""
 
 import gc
 import threading
@@ -19,7 +19,14 @@ from vafn_gym import (
     ScriptedController,
     run_episode,
 )
-from vafn_gym.constants import DIST_INDEX, GOAL_SLICE, PHASE_COMPLETED, PHASE_EXECUTING, PHASE_INDEX, PHASE_WAITING
+from vafn_gym.constants import (
+    DIST_INDEX,
+    GOAL_SLICE,
+    PHASE_COMPLETED,
+    PHASE_EXECUTING,
+    PHASE_INDEX,
+    PHASE_WAITING,
+)
 
 REACH = "VAFN/ThreeArmReach-v1"
 STREAM = "VAFN/ThreeArmStream-v1"
@@ -541,7 +548,7 @@ def test_stream_reset_goes_through_the_parents_reset():
     for _ in range(30):
         env.step(np.ones(9, dtype=np.float32))
     first = [r["instruction"] for r in base.records] + [len(base.queue)]
-    obs, info = env.reset(seed=7)  # arms teleported home, arrivals re-seeded from the env's seed
+    _, info = env.reset(seed=7)  # arms teleported home, arrivals re-seeded from the env's seed
     assert np.allclose(base.arms[1].ee_position, home) and info["total_steps"] == 0 and base.records == []
     for _ in range(30):
         env.step(np.ones(9, dtype=np.float32))

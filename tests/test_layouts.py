@@ -6,7 +6,16 @@ import pytest
 from gymnasium.utils.env_checker import check_env as gym_check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
-from vafn_gym import KUKA_IIWA, PANDA, ROBOTS, XARM6, ArmLayout, InstructionBenchmark, RobotSpec, ScriptedController
+from vafn_gym import (
+    KUKA_IIWA,
+    PANDA,
+    ROBOTS,
+    XARM6,
+    ArmLayout,
+    InstructionBenchmark,
+    RobotSpec,
+    ScriptedController,
+)
 from vafn_gym.constants import WORKSPACE_HIGH, WORKSPACE_LOW
 from vafn_gym.robots import get_robot
 
@@ -38,8 +47,9 @@ def test_layout_geometry(n_arms):
         assert np.isclose(np.linalg.norm(base[:2]), layout.base_radius) and base[2] == 0.0
         # The home point and the default target lie on the ray from the centre toward the base.
         for point in (home, target):
-            assert np.isclose(base[0] * point[1] - base[1] * point[0], 0.0, atol=1e-12) and np.dot(base[:2], point[:2]) > 0
-        assert np.linalg.norm(home[:2]) > layout.shared_radius  # homes are clear of the shared region
+            assert np.isclose(base[0] * point[1] - base[1] * point[0], 0.0, atol=1e-12)
+            assert np.dot(base[:2], point[:2]) > 0
+        assert np.linalg.norm(home[:2]) > layout.shared_radius  # clear of the shared region
     yaws = [layout.base_yaw(arm) for arm in layout.arm_ids]
     assert np.allclose(np.diff(yaws), 2 * np.pi / n_arms)
 

@@ -3,7 +3,14 @@
 import numpy as np
 import pytest
 
-from vafn_gym import ArmLayout, Instruction, InstructionBenchmark, InstructionTask, RewardConfig, TaskSampler
+from vafn_gym import (
+    ArmLayout,
+    Instruction,
+    InstructionBenchmark,
+    InstructionTask,
+    RewardConfig,
+    TaskSampler,
+)
 
 
 def test_splits_are_disjoint_and_cover_the_space():
@@ -51,7 +58,7 @@ def test_sampler_takes_the_arm_count_from_the_layout(n_arms):
 def test_long_orders_of_many_arms_are_drawn_by_rejection_within_their_split():
     sampler = TaskSampler("test", min_length=9, max_length=10, seed=0, layout=ArmLayout(n_arms=8))
     with pytest.raises(ValueError, match="too many to list"):
-        sampler.orders
+        _ = sampler.orders
     for instruction in sampler.sample_tasks(50):
         assert 9 <= len(instruction) <= 10 and sampler.split_of(instruction) == "test"
         assert all(a != b for a, b in zip(instruction.arms, instruction.arms[1:]))
