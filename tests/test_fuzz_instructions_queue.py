@@ -246,7 +246,10 @@ test_queue_state_machine = QueueMachine.TestCase
 # --- queue: concurrent producers and consumers ---
 def _run(queue: InstructionQueue, producers: int, per_producer: int, consumers: int, fail_rate: float,
          seed: int) -> tuple[list[tuple[int, int]], int]:
-    """Producers enqueue (retrying while full); consumers ``take`` and sometimes raise. Returns (handled keys, fails)."""
+    """Producers enqueue (retrying while full); consumers ``take``, consumer 0 sometimes raising.
+
+    Returns the keys handled (acknowledged) and the number of failures.
+    """
     handled: list[tuple[int, int]] = []
     failures = [0]
     done = threading.Event()
