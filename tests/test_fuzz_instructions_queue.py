@@ -85,7 +85,7 @@ def test_n_arms_accepts_exactly_the_arms_in_range(arms, n_arms):
     for build in (lambda: Instruction.parse(code, n_arms=n_arms), lambda: Instruction.from_arms(arms, n_arms=n_arms),
                   lambda: Instruction.from_json(json.dumps(arms), n_arms=n_arms),
                   lambda: Instruction.coerce(Instruction.from_arms(arms), n_arms=n_arms)):
-        assert (_attempt(lambda _: build(), None) is not None) == accepted
+        assert (_attempt(lambda _, build=build: build(), None) is not None) == accepted
     if not accepted:
         with pytest.raises(ValueError, match=f"allowed range 1..{n_arms}"):
             Instruction.from_arms(arms).check_arms(n_arms)
@@ -267,7 +267,7 @@ def _run(queue: InstructionQueue, producers: int, per_producer: int, consumers: 
                         if errors:
                             return  # a consumer died: nobody will make room
                         time.sleep(0.0002)
-        except BaseException as error:  # pragma: no cover - reported below
+        except BaseException as error:  # noqa: BLE001 - pragma: no cover - reported below
             errors.append(error)
 
     def consume(consumer: int) -> None:
@@ -285,7 +285,7 @@ def _run(queue: InstructionQueue, producers: int, per_producer: int, consumers: 
             except KeyError:
                 with lock:
                     failures[0] += 1
-            except BaseException as error:  # pragma: no cover - reported below
+            except BaseException as error:  # noqa: BLE001 - pragma: no cover - reported below
                 errors.append(error)
 
     threads = [threading.Thread(target=produce, args=(p,)) for p in range(producers)]

@@ -44,9 +44,9 @@ def test_explicit_targets():
 def test_targets_left_to_the_environment():
     instruction = Instruction.parse("2,3")
     with pytest.raises(ValueError, match="no explicit target"):
-        instruction[0].target_array
+        _ = instruction[0].target_array
     with pytest.raises(ValueError, match=r"waypoints \[0, 1\] have no explicit target"):
-        instruction.targets
+        _ = instruction.targets
     assert Instruction().targets.shape == (0, 3)
     resolved = instruction.with_default_targets(lambda arm: [0.0, 0.1 * arm, 0.3])
     assert np.allclose(resolved.targets, [[0.0, 0.2, 0.3], [0.0, 0.3, 0.3]])

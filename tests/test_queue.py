@@ -177,7 +177,7 @@ def test_n_arms_is_checked_on_enqueue_and_on_deferred_parsing():
     assert InstructionQueue().enqueue("2,4").instruction.arms == (2, 4)
     entry = queue.enqueue("2,4", validate=False)
     with pytest.raises(ValueError, match="arm 4"):
-        entry.instruction
+        _ = entry.instruction
     for bad in (0, True, 2.5, "3"):
         with pytest.raises(ValueError, match="n_arms"):
             InstructionQueue(n_arms=bad)
@@ -188,7 +188,7 @@ def test_n_arms_is_checked_on_enqueue_and_on_deferred_parsing():
 def test_deferred_parsing_raises_only_short_value_errors(payload):
     entry = InstructionQueue().enqueue(payload, validate=False)
     with pytest.raises(ValueError) as error:
-        entry.instruction
+        _ = entry.instruction
     assert type(error.value) is ValueError and len(str(error.value)) < 200
 
 
@@ -455,7 +455,7 @@ def _run_producers_and_consumer(queue: InstructionQueue) -> list[QueuedInstructi
                         break
                     except QueueFullError:
                         time.sleep(0)  # back-pressure: let the consumer run
-        except BaseException as error:  # pragma: no cover - reported below
+        except BaseException as error:  # noqa: BLE001 - pragma: no cover - reported below
             errors.append(error)
 
     threads = [threading.Thread(target=produce, args=(p,)) for p in range(PRODUCERS)]

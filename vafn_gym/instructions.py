@@ -24,7 +24,8 @@ from collections.abc import Mapping, Sequence as SequenceABC
 from contextlib import contextmanager
 from dataclasses import dataclass
 from numbers import Integral, Real
-from typing import Any, Callable, Iterable, Iterator, Sequence
+from typing import Any
+from collections.abc import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -52,7 +53,7 @@ def brief_repr(value: Any, limit: int = REPR_LIMIT) -> str:
     """A repr of ``value`` cut to about ``limit`` characters, safe on any object (for error messages)."""
     try:
         text = _REPR.repr(value)
-    except Exception:  # a huge int (str() limit), a broken __repr__, ...: describe the type only
+    except Exception:  # noqa: BLE001 - a huge int (str() limit), a broken __repr__, ...: describe the type only
         text = f"<{type(value).__name__} object>"
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
@@ -218,7 +219,7 @@ class Instruction(Sequence[Waypoint]):
     # --- constructors ---
     @classmethod
     def from_arms(cls, arms: Iterable[Any], targets: Iterable[Any] | None = None, *,
-                  n_arms: int | None = None) -> "Instruction":
+                  n_arms: int | None = None) -> Instruction:
         """Build from arm ids (``[2, 3, 1]``) and optional per-waypoint targets (``None``: the env decides).
 
         :param arms: the arm ids, in order (a list, tuple, 1-D array or iterator; not a set).
@@ -229,7 +230,7 @@ class Instruction(Sequence[Waypoint]):
             return cls._from_arms(arms, targets, _check_n_arms(n_arms))
 
     @classmethod
-    def _from_arms(cls, arms: Any, targets: Any, n_arms: int | None) -> "Instruction":
+    def _from_arms(cls, arms: Any, targets: Any, n_arms: int | None) -> Instruction:
         if isinstance(arms, (str, bytes, bytearray)):
             raise ValueError("from_arms expects a sequence of integers; use Instruction.parse for strings")
         if isinstance(arms, Mapping) or not isinstance(arms, (SequenceABC, IteratorABC, np.ndarray)):
@@ -251,7 +252,7 @@ class Instruction(Sequence[Waypoint]):
         return cls(waypoints)
 
     @classmethod
-    def parse(cls, text: str, allow_empty: bool = True, *, n_arms: int | None = None) -> "Instruction":
+    def parse(cls, text: str, allow_empty: bool = True, *, n_arms: int | None = None) -> Instruction:
         """Parse machine code: ``"2,3,1"``, ``"2 3 1"``, ``"[2, 3, 1]"``, ``"<2,3,1>"``, ``"231"`` or a JSON document.
 
         Only ASCII is accepted; empty tokens (``"2,,3"``, a trailing comma) are errors.
@@ -266,7 +267,7 @@ class Instruction(Sequence[Waypoint]):
             return cls._parse(_decode(text, "instruction text"), allow_empty, _check_n_arms(n_arms))
 
     @classmethod
-    def _parse(cls, text: str, allow_empty: bool, n_arms: int | None) -> "Instruction":
+    def _parse(cls, text: str, allow_empty: bool, n_arms: int | None) -> Instruction:
         stripped = text.strip()
         if stripped.startswith("{") or (stripped.startswith("[") and ("{" in stripped or "[" in stripped[1:])):
             return cls._from_json(stripped, n_arms)
@@ -284,7 +285,7 @@ class Instruction(Sequence[Waypoint]):
         return cls._from_arms(arms, None, n_arms)
 
     @classmethod
-    def from_json(cls, document: str | bytes | dict | list, *, n_arms: int | None = None) -> "Instruction":
+    def from_json(cls, document: str | bytes | dict | list, *, n_arms: int | None = None) -> Instruction:
         """Build from JSON: ``[2, 3]``, ``{"waypoints": [{"arm": 2, "target": [x, y, z]}, ...]}`` or a list of such.
 
         A waypoint object has an ``"arm"`` and an optional ``"target"`` (missing or ``null``: the env decides); any
@@ -297,7 +298,7 @@ class Instruction(Sequence[Waypoint]):
             return cls._from_json(document, _check_n_arms(n_arms))
 
     @classmethod
-    def _from_json(cls, document: Any, n_arms: int | None) -> "Instruction":
+    def _from_json(cls, document: Any, n_arms: int | None) -> Instruction:
         if isinstance(document, (str, bytes, bytearray)):
             text = _decode(document, "instruction JSON")
             try:
@@ -322,7 +323,7 @@ class Instruction(Sequence[Waypoint]):
         return cls._from_arms(arms, targets, n_arms)
 
     @classmethod
-    def coerce(cls, value: "Instruction | str | bytes | Iterable[Any]", *, n_arms: int | None = None) -> "Instruction":
+    def coerce(cls, value: Instruction | str | bytes | Iterable[Any], *, n_arms: int | None = None) -> Instruction:
         """Turn any accepted representation (an Instruction, machine code, JSON, a list of arm ids) into an Instruction.
 
         :param value: the representation; an :class:`Instruction` is returned as it is (after the ``n_arms`` check).
@@ -380,7 +381,7 @@ class Instruction(Sequence[Waypoint]):
         """Whether no waypoint has an explicit target (the environment decides every target)."""
         return all(w.target is None for w in self._waypoints)
 
-    def with_default_targets(self, default_target: Callable[[int], Any]) -> "Instruction":
+    def with_default_targets(self, default_target: Callable[[int], Any]) -> Instruction:
         """A copy in which every waypoint without an explicit target gets ``default_target(arm)``.
 
         :param default_target: maps an arm id to its target (e.g. a layout's default target).

@@ -18,7 +18,8 @@ from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from numbers import Integral, Real
-from typing import Any, Callable, Iterator, Literal, Mapping, Sequence
+from typing import Any, Literal
+from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -430,7 +431,7 @@ class ArrivalProcess(ABC):
     #: Source name used by :meth:`feed` when none is given.
     default_source: str = "arrival"
 
-    def reset(self, seed: int | None = None) -> None:
+    def reset(self, seed: int | None = None) -> None:  # noqa: B027 - optional hook; deterministic processes keep it
         """Start a new episode; seeded processes reseed (``None`` keeps a deterministic process as it is).
 
         :param seed: the new seed, or ``None``.
