@@ -19,13 +19,11 @@ import json
 import math
 import re
 import reprlib
-from collections.abc import Iterator as IteratorABC
-from collections.abc import Mapping, Sequence as SequenceABC
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from numbers import Integral, Real
 from typing import Any
-from collections.abc import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -130,7 +128,7 @@ def _check_target(value: Any, position: int | None) -> tuple[float, float, float
         if value.ndim != 1:
             raise ValueError(f"{_where(position)}: target must have 3 coordinates, got an array of shape {value.shape}")
         value = value.tolist()
-    elif isinstance(value, (str, bytes, bytearray)) or not isinstance(value, SequenceABC):
+    elif isinstance(value, (str, bytes, bytearray)) or not isinstance(value, Sequence):
         raise ValueError(f"{_where(position)}: target {brief_repr(value)} is not a list of 3 coordinates")
     if len(value) != 3:
         raise ValueError(f"{_where(position)}: target must have 3 coordinates, got {len(value)}")
@@ -152,7 +150,7 @@ def _ordered_items(values: Any, what: str) -> list[Any]:
         if values.ndim != 1:
             raise ValueError(f"{what} must be one-dimensional, got an array of shape {values.shape}")
         values = values.tolist()
-    elif isinstance(values, (str, bytes, bytearray)) or not isinstance(values, (SequenceABC, IteratorABC)):
+    elif isinstance(values, (str, bytes, bytearray)) or not isinstance(values, (Sequence, Iterator)):
         raise ValueError(f"{what} must be an ordered sequence (list or tuple), got {brief_repr(values)}")
     limit = MAX_INSTRUCTION_LENGTH
     items = list(itertools.islice(values, limit + 1))
@@ -233,7 +231,7 @@ class Instruction(Sequence[Waypoint]):
     def _from_arms(cls, arms: Any, targets: Any, n_arms: int | None) -> Instruction:
         if isinstance(arms, (str, bytes, bytearray)):
             raise ValueError("from_arms expects a sequence of integers; use Instruction.parse for strings")
-        if isinstance(arms, Mapping) or not isinstance(arms, (SequenceABC, IteratorABC, np.ndarray)):
+        if isinstance(arms, Mapping) or not isinstance(arms, (Sequence, Iterator, np.ndarray)):
             raise ValueError(
                 f"cannot interpret {brief_repr(arms)} as an instruction: expected an ordered list of arm ids"
             )
