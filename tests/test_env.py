@@ -361,6 +361,11 @@ def test_safety_margin_penalises_proximity_without_counting_a_collision():
         (STREAM, dict(horizon=0), "horizon"),
         (STREAM, dict(arrival_rate=float("inf")), "arrival_rate"),
         (STREAM, dict(queue_capacity=True), "queue_capacity"),
+        (STREAM, dict(overflow="bad"), "overflow"),
+        (STREAM, dict(arrivals="bad"), "arrivals"),
+        (STREAM, dict(auto_dequeue="no"), "auto_dequeue"),
+        (MULTI, dict(max_length=11), "max_length"),
+        (MULTI, dict(split_seed=1.5), "split_seed"),
     ],
 )
 def test_constructor_arguments_are_validated_at_construction(env_id, kwargs, name):
