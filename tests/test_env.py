@@ -95,10 +95,9 @@ def test_human_render_without_display_fails_clearly(monkeypatch):
 # --- the hold is exact ---
 @pytest.mark.parametrize("inactive_arms", ["hold", "policy"])
 def test_zero_action_and_inactive_arms_hold_within_a_millimetre(inactive_arms):
-    # Built directly: gym.make would take max_episode_steps for its own TimeLimit and never pass it to the env.
-    env = MultiArmEnv(instruction="1", max_episode_steps=2000, inactive_arms=inactive_arms)
+    env = gym.make("VAFN/ThreeArmReach-v1", instruction="1", max_steps=2000, inactive_arms=inactive_arms)
     env.reset(seed=0)
-    base = env
+    base = env.unwrapped
     homes = np.array([arm.home for arm in base.arms.values()])
     rng = np.random.default_rng(0)
     trajectory = []
@@ -110,13 +109,9 @@ def test_zero_action_and_inactive_arms_hold_within_a_millimetre(inactive_arms):
         trajectory.append([arm.ee_position for arm in base.arms.values()])
     assert not terminated and truncated
     trajectory = np.array(trajectory)
-    # The arms settle under gravity within a few steps (a static offset of a few mm from the teleported home pose);
-    # after that the pose must not creep.
-    settled = trajectory[20]
-    drift = float(np.max(np.linalg.norm(trajectory[20:] - settled, axis=2)))
+    # Arm 1 (active, zero action) and the inactive arms 2, 3 stay within 1 mm of home over all 2,000 steps.
+    drift = float(np.max(np.linalg.norm(trajectory - homes, axis=2)))
     assert drift < 1e-3, f"an arm drifted {drift * 1000:.2f} mm while holding"
-    sag = float(np.max(np.linalg.norm(trajectory - homes, axis=2)))
-    assert sag < 5e-3, f"an arm sagged {sag * 1000:.2f} mm from home"
     env.close()
 
 
@@ -373,10 +368,10 @@ def test_constructor_arguments_are_validated_at_construction(env_id, kwargs, nam
         gym.make(env_id, **kwargs)
 
 
-def test_max_episode_steps_is_validated_and_used():
-    with pytest.raises(ValueError, match="max_episode_steps"):
-        MultiArmEnv(max_episode_steps=0)
-    env = MultiArmEnv(instruction="1", max_episode_steps=7)
+def test_max_steps_is_validated_and_used():
+    with pytest.raises(ValueError, match="max_steps"):
+        MultiArmEnv(max_steps=0)
+    env = gym.make("VAFN/ThreeArmReach-v1", instruction="1", max_steps=7)
     env.reset(seed=0)
     truncated = [env.step(np.zeros(9))[3] for _ in range(7)]
     assert truncated == [False] * 6 + [True]
@@ -538,7 +533,7 @@ def test_stream_rejects_episode_kwargs_and_instruction_options():
     with pytest.raises(ValueError, match="queue"):
         gym.make(STREAM, instruction="1")
     with pytest.raises(ValueError, match="queue"):
-        MultiArmStreamEnv(max_episode_steps=10)  # gym.make would keep this kwarg for its own TimeLimit
+        gym.make("VAFN/ThreeArmStream-v1", max_steps=10)
     env = gym.make(STREAM, arrivals=None)
     with pytest.raises(ValueError, match="queue"):
         env.reset(seed=0, options={"instruction": "1"})

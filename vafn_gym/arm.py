@@ -46,9 +46,14 @@ class Arm:
         self._ik_rest = np.mean(self._ik_limits, axis=0)
         self._ik_rest[self._ik_indices] = self.rest_pose
         self.home_joints = self._solve(np.asarray(home_point, dtype=np.float64))
+        self._movable = movable
         self._joint_targets = self.home_joints
+        #: Pose every reset teleports to: all movable joints (fingers included, so they cannot creep across episodes);
+        #: :meth:`settle` replaces it by the pose the motors actually hold.
+        self._reset_pose = self._ik_rest.copy()
+        self._reset_pose[self._ik_indices] = self.home_joints
         self.reset()
-        #: Where the end effector actually rests (IK leaves up to ~1 cm of the nominal home point unreached).
+        #: Where the end effector rests; :meth:`settle` measures it after gravity has acted.
         self.home = self.ee_position
 
     def _solve(self, point: np.ndarray) -> np.ndarray:
@@ -64,9 +69,19 @@ class Arm:
         )
         return solution[self._ik_indices]
 
+    def settle(self) -> None:
+        """Record the pose the home joint targets hold under gravity (call after the simulator ran a few steps).
+
+        Position control leaves the arm a few millimetres below its IK solution; teleporting to the settled pose makes
+        every episode start at rest, so a held arm does not move at all.
+        """
+        self._reset_pose = self.sim.joint_angles(self.body, self._movable)
+        self.reset()
+        self.home = self.ee_position
+
     def reset(self) -> None:
         """Teleport to the home pose with zero velocity and hold it (bit-exact, unlike saveState/restoreState)."""
-        self.sim.reset_joints(self.body, self.joints, self.home_joints)
+        self.sim.reset_joints(self.body, self._movable, self._reset_pose)
         self._joint_targets = self.home_joints
         self.sim.control_joints(self.body, self.joints, self.home_joints, self.spec.joint_forces)
         self.commanded = self.ee_position
@@ -94,6 +109,11 @@ class Arm:
         return target
 
     def command_toward(self, goal: np.ndarray, dt: float, position: np.ndarray) -> np.ndarray:
-        """Move the commanded point toward ``goal`` at up to full speed per axis (the env's low-level return/hold)."""
-        velocity = np.clip((goal - self.commanded) / (V_MAX * dt), -1.0, 1.0) * V_MAX
-        return self.command_velocity(velocity, dt, position)
+        """Move the commanded point straight toward ``goal`` (the env's low-level return/hold).
+
+        The step keeps the direction of ``goal - commanded`` and is scaled so that no axis exceeds ``V_MAX``: a
+        per-axis clip would bend the path (diagonal first) and sweep the arm through its neighbours' space.
+        """
+        delta = goal - self.commanded
+        steps = max(1.0, float(np.max(np.abs(delta))) / (V_MAX * dt))
+        return self.command_velocity(delta / steps / dt, dt, position)

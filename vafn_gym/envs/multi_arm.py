@@ -40,11 +40,13 @@ from vafn_gym.sim import BulletSim
 from vafn_gym.task import INACTIVE_ARM_MODES, REWARD_TYPES, TARGET_MODES, InstructionTask, RewardConfig
 from vafn_gym.tasks import SPLITS, TaskSampler
 
-#: Episode budget when no max_episode_steps is given: BASE + PER_WAYPOINT * len(instruction) steps.
+#: Episode budget when no max_steps is given: BASE + PER_WAYPOINT * len(instruction) steps.
 BASE_EPISODE_STEPS = 50
 STEPS_PER_WAYPOINT = 80
 #: In "hold" mode the active arm waits until every other arm is within this distance of its home point.
 CLEARANCE_DISTANCE = 0.08
+#: Control steps the arms run at home when the env is built, to measure the pose they hold under gravity.
+SETTLE_STEPS = 20
 MARKER_RADIUS = 0.02
 TABLE_COLOUR = (0.55, 0.4, 0.25, 1.0)
 MAX_RENDER_SIZE = 4096
@@ -74,7 +76,8 @@ class MultiArmEnv(gym.Env):
     :param reward_kwargs: overrides of :class:`RewardConfig` weights, e.g. ``dict(progress_weight=5.0)``.
     :param terminate_on_collision: end the episode at the first arm-arm contact.
     :param safety_margin: if > 0, also penalise arm pairs closer than this (metres, from ``getClosestPoints``).
-    :param max_episode_steps: truncation horizon; ``None`` gives ``50 + 80 * len(instruction)``.
+    :param max_steps: truncation horizon; ``None`` gives ``50 + 80 * len(instruction)``. (``gym.make``'s own
+        ``max_episode_steps`` adds Gymnasium's ``TimeLimit`` wrapper on top, as for any env.)
     :param render_mode: "rgb_array" (headless TinyRenderer) or "human" (GUI window; needs a display).
     :param render_width: frame width in pixels.
     :param render_height: frame height in pixels.
@@ -100,7 +103,7 @@ class MultiArmEnv(gym.Env):
         reward_kwargs: Mapping[str, Any] | None = None,
         terminate_on_collision: bool = False,
         safety_margin: float = 0.0,
-        max_episode_steps: int | None = None,
+        max_steps: int | None = None,
         render_mode: str | None = None,
         render_width: int = 480,
         render_height: int = 360,
@@ -123,8 +126,8 @@ class MultiArmEnv(gym.Env):
         reward = RewardConfig.from_kwargs(reward_kwargs)
         self.terminate_on_collision = check_bool("terminate_on_collision", terminate_on_collision)
         self.safety_margin = check_number("safety_margin", safety_margin, 0.0, 1.0)
-        self.fixed_max_episode_steps = (
-            None if max_episode_steps is None else check_int("max_episode_steps", max_episode_steps, 1)
+        self.fixed_max_steps = (
+            None if max_steps is None else check_int("max_steps", max_steps, 1)
         )
         if render_mode is not None:
             check_choice("render_mode", render_mode, self.metadata["render_modes"])
@@ -152,6 +155,10 @@ class MultiArmEnv(gym.Env):
                 arm: self.sim.create_marker(self.arms[arm].home, MARKER_RADIUS, layout.colour(arm))
                 for arm in layout.arm_ids
             }
+        for _ in range(SETTLE_STEPS):
+            self.sim.step()
+        for arm in self.arms.values():
+            arm.settle()
         homes = {arm_id: arm.home for arm_id, arm in self.arms.items()}
         self.task = InstructionTask(layout, self.targets, self.inactive_arms, reward_type, reward, homes)
 
@@ -259,8 +266,8 @@ class MultiArmEnv(gym.Env):
 
     def max_episode_steps(self) -> int:
         """Truncation horizon of the current episode."""
-        if self.fixed_max_episode_steps is not None:
-            return self.fixed_max_episode_steps
+        if self.fixed_max_steps is not None:
+            return self.fixed_max_steps
         return self.default_instruction_budget()
 
     def default_instruction_budget(self) -> int:

@@ -49,7 +49,7 @@ class MultiArmStreamEnv(MultiArmEnv):
         instruction_timeout: int | None = None,
         **kwargs: Any,
     ) -> None:
-        if "instruction" in kwargs or "max_episode_steps" in kwargs:
+        if "instruction" in kwargs or "max_steps" in kwargs:
             raise ValueError("MultiArmStreamEnv takes instructions from its queue; use arrivals= and horizon=")
         self.horizon = check_int("horizon", horizon, 1)
         self.auto_dequeue = check_bool("auto_dequeue", auto_dequeue)
@@ -57,7 +57,7 @@ class MultiArmStreamEnv(MultiArmEnv):
             None if instruction_timeout is None else check_int("instruction_timeout", instruction_timeout, 1)
         )
         arrival_rate = check_number("arrival_rate", arrival_rate, 0.0, 1.0)
-        super().__init__(max_episode_steps=self.horizon, **kwargs)
+        super().__init__(max_steps=self.horizon, **kwargs)
         self.queue = InstructionQueue(
             capacity=check_int("queue_capacity", queue_capacity, 1), overflow=overflow, n_arms=self.n_arms
         )

@@ -185,13 +185,14 @@ class AtomicSaveMixin:
 
 def _algorithms() -> dict[str, type[BaseAlgorithm]]:
     # Imported here, not at module level: the vafn algorithms import this module for AtomicSaveMixin.
-    from stable_baselines3 import PPO, SAC, TD3
+    from stable_baselines3 import PPO, TD3
 
     from vafn_sb3.maac import MAAC
     from vafn_sb3.maddpg import MADDPG
     from vafn_sb3.maml_sac import MAMLSAC
     from vafn_sb3.mappo import MAPPO
     from vafn_sb3.mtsac import MTSAC
+    from vafn_sb3.sac import SAC  # SB3's SAC plus the shared per-arm actor alias; reads SB3 SAC files too
 
     return {cls.__name__: cls for cls in (SAC, TD3, PPO, MAAC, MADDPG, MAMLSAC, MAPPO, MTSAC)}
 
@@ -292,7 +293,8 @@ def _decode_space(encoded: Any) -> spaces.Box:
 def weights_config(model: BaseAlgorithm) -> dict[str, Any]:
     """The ``config.json`` of :func:`save_weights`; ``ValueError`` if the model cannot be rebuilt from JSON alone."""
     name = type(model).__name__
-    if _algorithms().get(name) is not type(model):
+    registered = _algorithms().get(name)
+    if registered is None or not issubclass(registered, type(model)):  # vafn's SAC also reads SB3 SAC models
         raise ValueError(f"weights files support {weights_algorithms()}, got {type(model).__qualname__}")
     hyperparameters, not_saved = {}, []
     for key in sorted(_hyperparameter_names(type(model))):
