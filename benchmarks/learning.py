@@ -105,18 +105,18 @@ def main() -> None:
     torch.set_num_threads(1)
     register_algorithms()
     benchmark = InstructionBenchmark(args.env, 1, 10, n_test=args.n_test, env_kwargs=args.env_kwargs)
+    name = f"{args.algo}_{args.env.split('/')[-1]}{args.tag}"
+    args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for seed in args.seeds:
         seed_rows, model = train_one(args, seed, benchmark)
         rows.extend(seed_rows)
         if args.save is not None:
-            model.save(args.save / f"{args.algo}_seed{seed}")
-    name = f"{args.algo}_{args.env.split('/')[-1]}{args.tag}"
-    args.out.mkdir(parents=True, exist_ok=True)
-    with (args.out / f"{name}_curves.csv").open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+            model.save(args.save / f"{name}_seed{seed}")
+        with (args.out / f"{name}_curves.csv").open("w", newline="") as handle:  # rewritten after every seed
+            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
     summary = {"algo": args.algo, "env": args.env, "env_kwargs": args.env_kwargs, "hyperparams": args.hyperparams,
                "train_max_length": args.train_max_length, "command": " ".join(sys.argv), **summarise(rows, args.seeds)}
     (args.out / f"{name}_summary.json").write_text(json.dumps(summary, indent=2))
