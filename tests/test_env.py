@@ -569,3 +569,15 @@ def test_stream_reset_keeps_user_items_and_drops_its_own_arrivals():
     assert queued[0] == user_item  # same sequence number and arrival time
     assert [e.instruction.arms for e in queued] == [(3,), (1,)]  # the old arrivals were dropped, step 0 fed again
     env.close()
+
+
+def test_stream_reset_mid_instruction_puts_the_user_item_back():
+    env = gym.make(STREAM, arrivals=None)
+    env.reset(seed=0)
+    queue = env.unwrapped.queue
+    item = queue.enqueue("2,3", source="user")
+    env.step(np.zeros(9))  # the stream takes it and starts executing
+    assert env.unwrapped.current is item and queue.in_flight == 1
+    env.reset(seed=1)  # abandoned: not lost, it runs again after the reset
+    assert env.unwrapped.current is item and queue.in_flight == 1
+    env.close()

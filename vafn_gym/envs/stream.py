@@ -73,9 +73,9 @@ class MultiArmStreamEnv(MultiArmEnv):
         if arrivals is None or isinstance(arrivals, ArrivalProcess):
             return arrivals
         if isinstance(arrivals, str) and arrivals == "poisson":
-            return PoissonArrivals(rate, sampler=self.sampler.sample, seed=0)
+            return PoissonArrivals(rate, sampler=self.sampler.sample, seed=0, n_arms=self.n_arms)
         if isinstance(arrivals, Mapping):
-            return ScheduledArrivals(arrivals)
+            return ScheduledArrivals(arrivals, n_arms=self.n_arms)
         raise ValueError(f"arrivals must be 'poisson', None, a schedule or an ArrivalProcess, got {arrivals!r:.60}")
 
     @property
@@ -89,6 +89,10 @@ class MultiArmStreamEnv(MultiArmEnv):
             raise ValueError("MultiArmStreamEnv takes instructions from its queue, not from reset options")
         if self.arrival_process is not None:
             self.arrival_process.reset(None if self._reset_seed is None else int(self.np_random.integers(2**63)))
+        if self.current is not None:  # abandoned mid-way: a user's instruction goes back to the head of the queue
+            settle = self.queue.ack if self.current.source == ARRIVAL_SOURCE else self.queue.nack
+            settle(self.current)
+            self.current = None
         self.queue.discard(lambda item: item.source == ARRIVAL_SOURCE)
         self.total_steps = 0
         self.records, self.errors = [], []
@@ -106,9 +110,13 @@ class MultiArmStreamEnv(MultiArmEnv):
         self.start_instruction(Instruction())
 
     def start_next(self) -> QueuedInstruction | None:
-        """Dequeue and start the next valid instruction (malformed ones are recorded in :attr:`errors` and skipped)."""
+        """Take the next valid instruction and start it (malformed ones are recorded in :attr:`errors` and skipped).
+
+        The item stays unacknowledged in the queue (``queue.in_flight``) until it completes or times out, so an
+        instruction abandoned by a reset is put back rather than lost.
+        """
         while True:
-            item = self.queue.dequeue()
+            item = self.queue.get_unacked()
             if item is None:
                 self._hold()
                 return None
@@ -116,6 +124,7 @@ class MultiArmStreamEnv(MultiArmEnv):
                 instruction = self._coerce(item.instruction)
                 self.start_instruction(instruction)
             except ValueError as error:
+                self.queue.ack(item)  # handled: recorded as an error, never retried
                 self.errors.append(f"instruction #{item.sequence} from {item.source!r:.60} rejected: {error}")
                 continue
             self.current = item
@@ -144,6 +153,7 @@ class MultiArmStreamEnv(MultiArmEnv):
             "success": outcome == "completed" and not self.task.collided,
         }
         self.records.append(record)
+        self.queue.ack(self.current)
         self._hold()
         return record
 
