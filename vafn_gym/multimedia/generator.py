@@ -13,7 +13,7 @@ import numpy as np
 
 from vafn_gym.instructions import Instruction
 from vafn_gym.multimedia.audio import AudioSource, load_audio
-from vafn_gym.multimedia.constants import IMAGE_HEIGHT, LOW_CONFIDENCE, MAX_INSTRUCTION_LENGTH, SAMPLE_RATE
+from vafn_gym.multimedia.constants import IMAGE_HEIGHT, LOW_CONFIDENCE, MAX_INSTRUCTION_LENGTH, NUM_ARMS, SAMPLE_RATE
 from vafn_gym.multimedia.images import ImageSource, canonical_strip
 
 #: The packaged checkpoint (weights + metadata JSON), produced by ``python -m vafn_gym.multimedia.train``.
@@ -170,7 +170,7 @@ class InstructionGenerator:
         readings = {}
         phis = {}
         if "code" in given:
-            instruction = Instruction.coerce(given["code"])  # ValueError on malformed code
+            instruction = Instruction.coerce(given["code"], n_arms=NUM_ARMS)  # ValueError on malformed code
         if "audio" in given:
             try:
                 clip = load_audio(given["audio"], sample_rate)
@@ -200,7 +200,7 @@ class InstructionGenerator:
         confidence = min([fused.weakest] + list(fused.confidences))
         low = confidence < self.low_confidence or bool(warnings)
         return Transcription(
-            instruction=Instruction.from_arms(arms),
+            instruction=Instruction.from_arms(arms, n_arms=NUM_ARMS),
             confidences=tuple(fused.confidences[: len(arms)]),
             confidence=confidence,
             low_confidence=low,

@@ -110,7 +110,7 @@ class InstructionModel(nn.Module):
 
     def __init__(self, config: ModelConfig | None = None) -> None:
         super().__init__()
-        self.config = config if config is not None else ModelConfig()
+        self.config = config = config if config is not None else ModelConfig()
         self.encoders = nn.ModuleDict({
             "audio": AudioEncoder(config.audio_channels),
             "image": ImageEncoder(config.image_channels),
