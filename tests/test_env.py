@@ -15,7 +15,6 @@ from vafn_gym import (
     Instruction,
     InstructionBenchmark,
     MultiArmEnv,
-    MultiArmStreamEnv,
     ScriptedController,
     run_episode,
 )

@@ -137,4 +137,6 @@ class ArmLayout:
         for arm in self.arm_ids:
             for point in (self.home_point(arm), self.default_target(arm)):
                 if np.any(point < WORKSPACE_LOW) or np.any(point > WORKSPACE_HIGH):
-                    raise ValueError(f"arm {arm}'s home or default target {point.round(3).tolist()} leaves the workspace")
+                    raise ValueError(
+                        f"arm {arm}'s home or default target {point.round(3).tolist()} leaves the workspace"
+                    )

@@ -16,15 +16,22 @@ from vafn_gym.envs.multi_arm import MultiArmEnv
 
 
 class MultiArmParallelEnv(ParallelEnv):
-    """Each arm is an agent (``arm_1`` .. ``arm_N``) with a 3-D velocity action; every agent sees the global observation.
+    """Each arm is an agent (``arm_1`` .. ``arm_N``) with a 3-D velocity action.
+
+    Every agent sees the global observation.
 
     All agents stay alive until the instruction ends (arms recur in an order, and PettingZoo forbids revival).
     ``state()`` is the global observation.
 
-    :param kwargs: everything :class:`MultiArmEnv` accepts (use ``inactive_arms="policy"`` for a true multi-agent task).
+    :param kwargs: everything :class:`MultiArmEnv` accepts
+        (use ``inactive_arms="policy"`` for a true multi-agent task).
     """
 
-    metadata = {"name": "vafn_multi_arm_v1", "render_modes": MultiArmEnv.metadata["render_modes"], "is_parallelizable": True}
+    metadata = {
+        "name": "vafn_multi_arm_v1",
+        "render_modes": MultiArmEnv.metadata["render_modes"],
+        "is_parallelizable": True,
+    }
 
     def __init__(self, **kwargs: Any) -> None:
         self.env = MultiArmEnv(**kwargs)
@@ -61,7 +68,9 @@ class MultiArmParallelEnv(ParallelEnv):
         joint = np.zeros(self.env.action_space.shape, dtype=np.float32)
         for arm, agent in zip(self.env.layout.arm_ids, self.possible_agents):
             if agent in actions:
-                joint[self.env.layout.action_slice(arm)] = np.asarray(actions[agent], dtype=np.float32).reshape(ACTION_PER_ARM)
+                joint[self.env.layout.action_slice(arm)] = np.asarray(
+                    actions[agent], dtype=np.float32
+                ).reshape(ACTION_PER_ARM)
         obs, reward, terminated, truncated, info = self.env.step(joint)
         self._state = obs
         agents = self.agents

@@ -53,7 +53,9 @@ class TaskSampler:
         if targets not in TARGET_MODES:
             raise ValueError(f"targets must be one of {TARGET_MODES}, got {targets!r}")
         if not 0 <= min_length <= max_length <= MAX_INSTRUCTION_LENGTH:
-            raise ValueError(f"need 0 <= min_length <= max_length <= {MAX_INSTRUCTION_LENGTH}, got {min_length}, {max_length}")
+            raise ValueError(
+                f"need 0 <= min_length <= max_length <= {MAX_INSTRUCTION_LENGTH}, got {min_length}, {max_length}"
+            )
         if len(fractions) != 3 or min(fractions) < 0 or not np.isclose(sum(fractions), 1.0):
             raise ValueError(f"fractions must be three non-negative shares summing to 1, got {fractions}")
         self.split = split
@@ -102,7 +104,9 @@ class TaskSampler:
     def _random_order(self, length: int, rng: np.random.Generator) -> tuple[int, ...]:
         order: list[int] = []
         for _ in range(length):
-            choices = [a for a in range(1, self.n_arms + 1) if not (self.no_adjacent_repeats and order and order[-1] == a)]
+            choices = [
+                a for a in range(1, self.n_arms + 1) if not (self.no_adjacent_repeats and order and order[-1] == a)
+            ]
             order.append(choices[rng.integers(len(choices))])
         return tuple(order)
 

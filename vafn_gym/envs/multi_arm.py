@@ -238,7 +238,10 @@ class MultiArmEnv(gym.Env):
 
     # --- episode ---
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
-        """Home every arm and start an instruction (``options={"instruction": ...}`` overrides the task for one episode)."""
+        """Home every arm and start an instruction.
+
+        ``options={"instruction": ...}`` overrides the task for one episode.
+        """
         if options is not None and not isinstance(options, Mapping):
             raise TypeError(f"options must be a dict or None, got {type(options).__name__}")
         instruction = None
@@ -360,7 +363,9 @@ class MultiArmEnv(gym.Env):
             return None
         width, height = self.render_size
         distance = 1.1 + self.layout.base_radius
-        return self.sim.render(width, height, target=np.array([0.0, 0.0, 0.3]), distance=distance, yaw=30.0, pitch=-30.0)
+        return self.sim.render(
+            width, height, target=np.array([0.0, 0.0, 0.3]), distance=distance, yaw=30.0, pitch=-30.0
+        )
 
     def close(self) -> None:
         """Release the physics client; safe to call twice."""

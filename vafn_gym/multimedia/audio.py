@@ -90,7 +90,9 @@ def load_audio(source: AudioSource, sample_rate: int | None = None) -> Audio:
         raise ValueError(f"sample rate must be an integer number of Hz, got {rate!r}")
     rate = int(rate)
     if not MIN_SAMPLE_RATE <= rate <= MAX_SAMPLE_RATE:
-        raise ValueError(f"sample rate {rate} Hz is outside the supported range {MIN_SAMPLE_RATE}..{MAX_SAMPLE_RATE} Hz")
+        raise ValueError(
+            f"sample rate {rate} Hz is outside the supported range {MIN_SAMPLE_RATE}..{MAX_SAMPLE_RATE} Hz"
+        )
     waveform = _to_mono_float(samples)
     if waveform.size == 0:
         raise ValueError("audio is empty (0 samples)")

@@ -67,7 +67,10 @@ def calibrate_fusion(model, data, grid: Sequence[float] = IMAGE_WEIGHT_GRID) -> 
                     for r in pairs for i in range(len(labels))]
             scores[weight] = float(np.mean(hits))
     best = max(grid, key=lambda w: (scores[w], w))  # ties: the more even weighting
-    return {"fusion_weights": {"audio": 1.0, "image": best}, "calibration": {str(w): round(a, 4) for w, a in scores.items()}}
+    return {
+        "fusion_weights": {"audio": 1.0, "image": best},
+        "calibration": {str(w): round(a, 4) for w, a in scores.items()},
+    }
 
 
 def main(argv=None) -> dict:

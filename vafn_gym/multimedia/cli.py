@@ -1,4 +1,5 @@
-"""``vafn-instruct``: read an instruction from a speech file, an image and/or machine code, print it with confidences."""
+"""``vafn-instruct``: read an instruction from a speech file, an image and/or machine code,
+print it with confidences."""
 
 from __future__ import annotations
 

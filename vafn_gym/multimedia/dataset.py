@@ -124,7 +124,10 @@ def generate_raw(seed: int, split: str, count: int, difficulty: str | None = Non
     :param start: index of the first item.
     :param workers: parallel processes.
     """
-    jobs = [(seed, split, s, min(SHARD_SIZE, start + count - s), difficulty) for s in range(start, start + count, SHARD_SIZE)]
+    jobs = [
+        (seed, split, s, min(SHARD_SIZE, start + count - s), difficulty)
+        for s in range(start, start + count, SHARD_SIZE)
+    ]
     with _pool(workers) as pool:
         parts = pool.map(_render_range, jobs, chunksize=1)
     return RawItems([a for p in parts for a in p.arms], [w for p in parts for w in p.waveforms], parts[0].sample_rate,
@@ -153,7 +156,8 @@ def _compact_shard(args: tuple[int, str, int, int, str]) -> str:
         noisy_audio.append(log_mel(noisy, SAMPLE_RATE)[0].numpy().astype(np.float16))
         clean.append(np.rint(canonical_strip(image) * INK_LEVELS).astype(np.uint8))
         masked.append(np.rint(canonical_strip(cutout(image, rng)) * INK_LEVELS).astype(np.uint8))
-    np.savez(path + ".tmp.npz", arms=np.array([list(a) + [0] * (MAX_INSTRUCTION_LENGTH - len(a)) for a in raw.arms], np.int8),
+    np.savez(path + ".tmp.npz",
+             arms=np.array([list(a) + [0] * (MAX_INSTRUCTION_LENGTH - len(a)) for a in raw.arms], np.int8),
              lengths=np.array([len(a) for a in raw.arms], np.int8),
              clean_audio=np.concatenate(clean_audio, axis=1), noisy_audio=np.concatenate(noisy_audio, axis=1),
              frames=np.array([a.shape[1] for a in clean_audio], np.int64),

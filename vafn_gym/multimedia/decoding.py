@@ -61,7 +61,9 @@ def greedy_decode(phi: torch.Tensor, logits: torch.Tensor) -> Decoded:
         confidences.append(float(segment.max()))
         peaks.append(int(start + segment.argmax()))
         embeddings.append((segment / segment.sum()) @ phi_np[start:end])
-    stacked = torch.from_numpy(np.stack(embeddings).astype(np.float32)) if embeddings else phi.new_zeros((0, phi.shape[-1]))
+    stacked = (
+        torch.from_numpy(np.stack(embeddings).astype(np.float32)) if embeddings else phi.new_zeros((0, phi.shape[-1]))
+    )
     return Decoded(arms, confidences, peaks, stacked, float(best_prob.min()), log_probs)
 
 
@@ -73,8 +75,9 @@ def sequence_log_likelihood(log_probs: torch.Tensor, arms: list[int]) -> float:
     """
     frames = log_probs.shape[0]
     targets = torch.tensor(list(arms), dtype=torch.long).reshape(1, len(arms))
-    loss = torch.nn.functional.ctc_loss(log_probs[:, None, :], targets, torch.tensor([frames]), torch.tensor([len(arms)]),
-                                        blank=BLANK, reduction="sum", zero_infinity=False)
+    loss = torch.nn.functional.ctc_loss(log_probs[:, None, :], targets, torch.tensor([frames]),
+                                        torch.tensor([len(arms)]), blank=BLANK, reduction="sum",
+                                        zero_infinity=False)
     return float(-loss)
 
 
@@ -111,7 +114,8 @@ def fuse(readings: dict[str, Decoded], decoder: torch.nn.Module, weights: dict[s
         count = counts.pop()
         if count == 0:
             return Fused([], [], "latent", max(readings[n].weakest for n in names))
-        mix = torch.tensor([[reliability[n] * readings[n].confidences[j] for j in range(count)] for n in names])  # (M, L)
+        # (M, L)
+        mix = torch.tensor([[reliability[n] * readings[n].confidences[j] for j in range(count)] for n in names])
         mix = mix / mix.sum(0, keepdim=True).clamp_min(1e-12)
         stacked = torch.stack([readings[n].embeddings for n in names])  # (M, L, D)
         fused = (mix[:, :, None] * stacked).sum(0)

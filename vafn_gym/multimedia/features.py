@@ -55,7 +55,9 @@ def num_frames(num_samples: int, sample_rate: int) -> int:
     return num_samples // hop + 1
 
 
-def log_mel_batch(waveforms: torch.Tensor, lengths: torch.Tensor, sample_rate: int) -> tuple[torch.Tensor, torch.Tensor]:
+def log_mel_batch(
+    waveforms: torch.Tensor, lengths: torch.Tensor, sample_rate: int
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-utterance mean/variance-normalised log-mel features of a zero-padded batch.
 
     :param waveforms: (B, N) float tensor.

@@ -87,7 +87,9 @@ class InstructionGenerator:
 
         checkpoint = Path(path) if path is not None else DEFAULT_CHECKPOINT
         if not checkpoint.is_file():
-            raise FileNotFoundError(f"no checkpoint at {checkpoint}; train one with `python -m vafn_gym.multimedia.train`")
+            raise FileNotFoundError(
+                f"no checkpoint at {checkpoint}; train one with `python -m vafn_gym.multimedia.train`"
+            )
         meta_path = checkpoint.with_suffix(".json")
         metadata = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
         model = InstructionModel(ModelConfig.from_dict(metadata["config"]) if "config" in metadata else ModelConfig())
@@ -162,7 +164,9 @@ class InstructionGenerator:
         from vafn_gym.multimedia.decoding import fuse
 
         started = time.perf_counter()
-        given = {name: value for name, value in (("audio", audio), ("image", image), ("code", code)) if value is not None}
+        given = {
+            name: value for name, value in (("audio", audio), ("image", image), ("code", code)) if value is not None
+        }
         if not given:
             raise ValueError("transcribe needs at least one of audio=, image=, code=")
         warnings: list[str] = []
@@ -213,7 +217,9 @@ class InstructionGenerator:
         )
 
     @staticmethod
-    def _code_result(instruction: Instruction, readings: dict, warnings: list, dropped: dict, started: float) -> Transcription:
+    def _code_result(
+        instruction: Instruction, readings: dict, warnings: list, dropped: dict, started: float
+    ) -> Transcription:
         for name, reading in readings.items():
             if tuple(reading.arms) != instruction.arms:
                 warnings.append(f"{name} reads {list(reading.arms)} but the code says {list(instruction.arms)}")

@@ -1,4 +1,7 @@
-"""Loading, validating and canonicalising images (OpenCV): any size, gray or BGR(A), either polarity -> a 32-px strip."""
+"""Loading, validating and canonicalising images (OpenCV).
+
+Any size, gray or BGR(A), either polarity -> a 32-px strip.
+"""
 
 from __future__ import annotations
 

@@ -119,7 +119,9 @@ class InstructionModel(nn.Module):
             "audio": nn.Conv1d(config.audio_channels, config.latent_dim, 1),
             "image": nn.Conv1d(config.image_channels[-1], config.latent_dim, 1),
         })
-        self.projection = nn.Sequential(nn.Linear(config.latent_dim, config.latent_dim), nn.LayerNorm(config.latent_dim))
+        self.projection = nn.Sequential(
+            nn.Linear(config.latent_dim, config.latent_dim), nn.LayerNorm(config.latent_dim)
+        )
         self.decoder = nn.Sequential(nn.Linear(config.latent_dim, config.decoder_hidden), nn.ReLU(),
                                      nn.Linear(config.decoder_hidden, VOCAB_SIZE))
 
@@ -168,7 +170,9 @@ def fold_batchnorm(model: InstructionModel) -> InstructionModel:
         elif isinstance(module, nn.Sequential):
             children = list(module)
             for i in range(len(children) - 1):
-                if isinstance(children[i], (nn.Conv1d, nn.Conv2d)) and isinstance(children[i + 1], (nn.BatchNorm1d, nn.BatchNorm2d)):
+                if isinstance(children[i], (nn.Conv1d, nn.Conv2d)) and isinstance(
+                    children[i + 1], (nn.BatchNorm1d, nn.BatchNorm2d)
+                ):
                     _fold(children[i], children[i + 1])
                     module[i + 1] = nn.Identity()
     return folded

@@ -113,7 +113,9 @@ class EspeakSynthesizer:
         try:
             import espeakng_loader
         except ImportError as error:  # pragma: no cover - depends on the optional extra
-            raise ImportError("speech synthesis needs the optional 'espeakng-loader' package: pip install vafn[media]") from error
+            raise ImportError(
+                "speech synthesis needs the optional 'espeakng-loader' package: pip install vafn[media]"
+            ) from error
         callback_type = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.POINTER(ctypes.c_short), ctypes.c_int, ctypes.c_void_p)
         lib = ctypes.CDLL(espeakng_loader.get_library_path())
         lib.espeak_Initialize.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_char_p, ctypes.c_int]
@@ -123,7 +125,9 @@ class EspeakSynthesizer:
             ctypes.c_void_p, ctypes.c_size_t, ctypes.c_uint, ctypes.c_int, ctypes.c_uint, ctypes.c_uint,
             ctypes.POINTER(ctypes.c_uint), ctypes.c_void_p,
         ]
-        rate = lib.espeak_Initialize(_AUDIO_OUTPUT_SYNCHRONOUS, 0, espeakng_loader.get_data_path().encode(), _INITIALIZE_DONT_EXIT)
+        rate = lib.espeak_Initialize(
+            _AUDIO_OUTPUT_SYNCHRONOUS, 0, espeakng_loader.get_data_path().encode(), _INITIALIZE_DONT_EXIT
+        )
         if rate != ESPEAK_SAMPLE_RATE:
             raise RuntimeError(f"espeak-ng initialised at {rate} Hz, expected {ESPEAK_SAMPLE_RATE}")
         self._chunks: list[np.ndarray] = []

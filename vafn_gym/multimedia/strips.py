@@ -126,7 +126,8 @@ def render_strip(arms: Sequence[int], rng: np.random.Generator, heldout: bool = 
     for position, arm in enumerate(arms):
         glyph = (_handwritten_glyph if handwritten else _printed_glyph)(int(arm), rng, cell, heldout)
         x0 = margins[2] + position * cell
-        ink[margins[0]:margins[0] + cell, x0:x0 + cell] = np.maximum(ink[margins[0]:margins[0] + cell, x0:x0 + cell], glyph)
+        rows, cols = slice(margins[0], margins[0] + cell), slice(x0, x0 + cell)
+        ink[rows, cols] = np.maximum(ink[rows, cols], glyph)
     background = rng.uniform(*BACKGROUND_RANGE)
     foreground = rng.uniform(*FOREGROUND_RANGE)
     image = background + np.clip(ink, 0.0, 1.0) * (foreground - background)

@@ -169,7 +169,9 @@ def main(argv=None) -> dict:
     started = time.time()
     cache = args.cache_dir or DEFAULT_CACHE
     train = build_cache(args.seed, "train", args.train_items, cache, args.workers)
-    validation = {split: build_cache(args.seed, split, args.val_items, cache, args.workers) for split in ("test", "heldout")}
+    validation = {
+        split: build_cache(args.seed, split, args.val_items, cache, args.workers) for split in ("test", "heldout")
+    }
     data_seconds = time.time() - started
 
     config = ModelConfig()
@@ -194,8 +196,8 @@ def main(argv=None) -> dict:
             losses[f"ctc_{modality}"] = F.ctc_loss(log_probs, flat_targets, lengths, target_lengths, blank=BLANK,
                                                    zero_infinity=True)
             outputs[modality] = (phi, logits, lengths)
-        infonce, fused_ce, aligned = alignment_losses(model, *outputs["audio"], *outputs["image"], targets, target_lengths,
-                                                      args.temperature, rng)
+        infonce, fused_ce, aligned = alignment_losses(model, *outputs["audio"], *outputs["image"], targets,
+                                                      target_lengths, args.temperature, rng)
         losses["infonce"], losses["fused_ce"] = infonce, fused_ce
         total = losses["ctc_audio"] + losses["ctc_image"] + args.align_weight * infonce + args.fused_weight * fused_ce
         optimizer.zero_grad()
@@ -223,8 +225,13 @@ def main(argv=None) -> dict:
     torch.save(state, args.out / f"{CHECKPOINT_NAME}.pt")
     metadata = {
         "config": config.to_dict(),
-        "command": "python -m vafn_gym.multimedia.train " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
-        "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items() if k not in ("out", "logdir", "cache_dir")},
+        "command": "python -m vafn_gym.multimedia.train "
+        + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
+        "args": {
+            k: str(v) if isinstance(v, Path) else v
+            for k, v in vars(args).items()
+            if k not in ("out", "logdir", "cache_dir")
+        },
         "data_seconds": round(data_seconds, 1),
         "total_seconds": round(time.time() - started, 1),
         "cpu_seconds": round(_cpu_seconds(), 1),

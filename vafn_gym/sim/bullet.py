@@ -141,9 +141,13 @@ class BulletSim:
         """Number of point pairs between two bodies closer than ``distance`` (slow: use only for safety margins)."""
         return len(p.getClosestPoints(body_a, body_b, distance, physicsClientId=self.client))
 
-    def render(self, width: int, height: int, target: np.ndarray, distance: float, yaw: float, pitch: float) -> np.ndarray:
+    def render(
+        self, width: int, height: int, target: np.ndarray, distance: float, yaw: float, pitch: float
+    ) -> np.ndarray:
         """An RGB frame (height, width, 3) uint8 from an orbit camera, TinyRenderer in DIRECT mode."""
-        view = p.computeViewMatrixFromYawPitchRoll(list(target), distance, yaw, pitch, 0, 2, physicsClientId=self.client)
+        view = p.computeViewMatrixFromYawPitchRoll(
+            list(target), distance, yaw, pitch, 0, 2, physicsClientId=self.client
+        )
         proj = p.computeProjectionMatrixFOV(60, width / height, 0.05, 10.0, physicsClientId=self.client)
         _, _, rgba, _, _ = p.getCameraImage(
             width, height, view, proj, renderer=p.ER_TINY_RENDERER, shadow=0, physicsClientId=self.client,
