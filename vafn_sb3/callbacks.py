@@ -156,7 +156,12 @@ class MetaEvalCallback(BaseCallback):
 
         self.env_id = self.env_id or _training_env_id(self)
         benchmark = InstructionBenchmark(
-            self.env_id, self.min_length, self.max_length, n_test=self.n_tasks, seed=self.seed, env_kwargs=self.env_kwargs
+            self.env_id,
+            self.min_length,
+            self.max_length,
+            n_test=self.n_tasks,
+            seed=self.seed,
+            env_kwargs=self.env_kwargs,
         )
         self.tasks = benchmark.test_tasks
         if self.log_path is None and self.logger is not None and self.logger.dir:

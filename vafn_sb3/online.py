@@ -5,9 +5,10 @@ Loop, one control step at a time:
 1. no instruction running: ask the stream for the next one (``start_next``; malformed entries are recorded in the
    stream's ``errors`` and skipped). Queue empty: **hold** (zero velocity for every arm) and step;
 2. an instruction was dequeued: **adapt** the model to it. The support set is collected on a private *twin*
-   :class:`~vafn_gym.envs.MultiArmEnv` (the stream's own world, task and reward settings) after ``set_task(instruction)``, so the real arms
-   never execute exploratory support actions and adaptation finishes before the first real action. The twin is a
-   simulator of the same world: this assumes the task (including hidden targets) can be simulated, as in meta-training;
+   :class:`~vafn_gym.envs.MultiArmEnv` (the stream's own world, task and reward settings) after
+   ``set_task(instruction)``, so the real arms never execute exploratory support actions and adaptation finishes
+   before the first real action. The twin is a simulator of the same world: this assumes the task (including hidden
+   targets) can be simulated, as in meta-training;
 3. **execute** the adapted policy (deterministic) until the stream reports the instruction completed or timed out;
 4. **reset to θ**: drop the adapted parameters (``adapt`` never modifies the model) and continue.
 
@@ -40,7 +41,8 @@ class InstructionLog:
     :param instruction: its machine code.
     :param arrival_time: when it was enqueued.
     :param dequeue_time: when the controller took it from the queue.
-    :param adaptation_time_s: wall time of ``model.adapt`` (support rollout on the twin + K inner rounds); 0 without adaptation.
+    :param adaptation_time_s: wall time of ``model.adapt`` (support rollout on the twin + K inner rounds);
+        0 without adaptation.
     :param first_action_time: when the first adapted action was ready to be sent.
     :param latency_s: ``first_action_time - arrival_time`` (includes waiting behind earlier instructions).
     :param service_latency_s: ``first_action_time - dequeue_time`` (the controller's own reaction time).
@@ -138,7 +140,9 @@ class OnlineController:
                 )
             except Exception as error:  # noqa: BLE001 - a failed adaptation must not stop the arms' loop
                 entry.error = f"{type(error).__name__}: {error}"
-                self.errors.append(f"instruction #{item.sequence}: adaptation failed, unadapted policy used: {entry.error}")
+                self.errors.append(
+                    f"instruction #{item.sequence}: adaptation failed, unadapted policy used: {entry.error}"
+                )
             entry.adaptation_time_s = time.perf_counter() - start
         self._current = entry
         self.log.append(entry)

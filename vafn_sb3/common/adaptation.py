@@ -127,7 +127,9 @@ class SupportSet:
             bootstrap_discount[t] = 0.0 if self.terminated[j] else discount
         return reward_sums, stop_index, bootstrap_discount
 
-    def discounted_returns(self, gamma: float, n_step: int | None = None, bootstrap: np.ndarray | None = None) -> np.ndarray:
+    def discounted_returns(
+        self, gamma: float, n_step: int | None = None, bootstrap: np.ndarray | None = None
+    ) -> np.ndarray:
         """Per-step n-step targets (see :meth:`nstep_plan`); without ``bootstrap`` the value tail counts as 0.
 
         :param gamma: discount factor.
@@ -138,11 +140,14 @@ class SupportSet:
         reward_sums, stop_index, bootstrap_discount = self.nstep_plan(gamma, n_step)
         if bootstrap is None:
             return reward_sums
-        return (reward_sums + bootstrap_discount * np.asarray(bootstrap, dtype=np.float32)[stop_index]).astype(np.float32)
+        return (
+            reward_sums + bootstrap_discount * np.asarray(bootstrap, dtype=np.float32)[stop_index]
+        ).astype(np.float32)
 
 
 def collect_support(model: Any, env: gym.Env, task: Instruction | None, n_support: int, seed: int | None) -> SupportSet:
-    """Roll out ``model``'s stochastic policy (``predict(obs, deterministic=False)``) for ``n_support`` steps on one task.
+    """Roll out ``model``'s stochastic policy (``predict(obs, deterministic=False)``) for ``n_support`` steps on one
+    task.
 
     The env is reset (with ``seed``) after ``env.unwrapped.set_task(task)``, and again after every episode end. Torch's
     global random stream is forked, so the policy noise is reproducible from ``seed`` and the caller's stream is left

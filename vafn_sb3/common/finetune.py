@@ -70,8 +70,8 @@ def support_replay_buffer(model: Any, support: SupportSet) -> FullBatchReplayBuf
 class GaussianExplorationPolicy:
     """A deterministic policy plus clipped Gaussian exploration noise, with its own seeded noise stream.
 
-    SB3 adds a DDPG/TD3 agent's exploration noise inside ``collect_rollouts``, not in ``predict``; this wrapper gives the
-    support rollouts the same behaviour policy.
+    SB3 adds a DDPG/TD3 agent's exploration noise inside ``collect_rollouts``, not in ``predict``; this wrapper gives
+    the support rollouts the same behaviour policy.
 
     :param model: an SB3 model with a deterministic ``predict`` and a [-1, 1]-scaled Box action space.
     :param std: noise standard deviation in the scaled action space.
@@ -146,7 +146,9 @@ class FineTuneAdaptation:
         return adapted
 
     def _support_policy(self, seed: int | None) -> Any:
-        """The behaviour policy of the support rollouts: the model itself (its ``predict(deterministic=False)`` samples).
+        """The behaviour policy of the support rollouts.
+
+        The model itself (its ``predict(deterministic=False)`` samples).
 
         :param seed: seed of any extra exploration noise (used by deterministic-policy subclasses).
         """
@@ -176,7 +178,8 @@ class FineTuneAdaptation:
         return [name for name in self._get_torch_save_params()[0] if name.split(".")[-1].endswith("optimizer")]
 
     def _snapshot(self) -> dict[str, Any]:
-        """Deep copies of every torch state SB3 would save, the logger, the training mode and the swappable attributes."""
+        """Deep copies of every torch state SB3 would save, the logger, the training mode and the swappable
+        attributes."""
         state_dicts, variables = self._get_torch_save_params()
         return {
             "state_dicts": {name: copy.deepcopy(recursive_getattr(self, name).state_dict()) for name in state_dicts},

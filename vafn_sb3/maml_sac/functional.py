@@ -1,4 +1,6 @@
-"""Pure functions of parameter dicts for MAML-SAC: actor sampling, the inner adaptation step and the per-task query loss.
+"""Pure functions of parameter dicts for MAML-SAC.
+
+Actor sampling, the inner adaptation step and the per-task query loss.
 
 Parameters are plain ``{name: tensor}`` dicts applied with :func:`torch.func.functional_call`; they are never written
 into the modules. Gradients of the inner losses come from :func:`torch.func.grad`, which composes with ``vmap`` over a
@@ -30,7 +32,9 @@ Params = dict[str, torch.Tensor]
 
 
 class ActorDistribution(nn.Module):
-    """``forward(obs) -> (mean, log_std)`` of an SB3 SAC :class:`Actor`, so that ``functional_call`` can re-parametrise it.
+    """``forward(obs) -> (mean, log_std)`` of an SB3 SAC :class:`Actor`.
+
+    So that ``functional_call`` can re-parametrise it.
 
     Its parameter names are the actor's, prefixed with ``"actor."``.
 

@@ -1,4 +1,6 @@
-"""MAML-SAC: Soft Actor-Critic meta-trained with MAML inner/outer updates over a task distribution (algo key ``maml_sac``).
+"""MAML-SAC: Soft Actor-Critic meta-trained with MAML inner/outer updates over a task distribution.
+
+Algo key ``maml_sac``.
 
 Not to be confused with "Meta-SAC" (arXiv 2007.01932), which meta-learns SAC's entropy temperature only.
 
@@ -74,7 +76,9 @@ class AdaptedSACPolicy:
     :param critic_params: adapted critic parameters (kept for inspection).
     """
 
-    def __init__(self, policy: BasePolicy, actor: ActorDistribution, actor_params: Params, critic_params: Params) -> None:
+    def __init__(
+        self, policy: BasePolicy, actor: ActorDistribution, actor_params: Params, critic_params: Params
+    ) -> None:
         self.policy = policy
         self.actor = actor
         self.actor_params = actor_params
@@ -123,7 +127,8 @@ class MAMLSAC(AtomicSaveMixin, SAC):
     :param train_tasks: explicit training tasks; ``None`` draws the pool from ``env``'s own task sampler.
     :param query_buffer_size: capacity of each task's query FIFO.
     :param warmup_steps: env steps of plain multi-task SAC (env-sampled tasks) before meta-training starts.
-    :param meta_batch_mode: ``"vmap"`` (the meta-batch in one ``torch.func.vmap`` call) or ``"loop"`` (one call per task).
+    :param meta_batch_mode: ``"vmap"`` (the meta-batch in one ``torch.func.vmap`` call) or ``"loop"``
+        (one call per task).
     :param max_grad_norm: clip the meta-gradient of actor and critic to this norm.
     :param task_seed: seed of the task pool and of the meta-batch draws.
     :param kwargs: every other :class:`~stable_baselines3.SAC` argument (``learning_rate``, ``batch_size``, ``gamma``,
@@ -209,7 +214,8 @@ class MAMLSAC(AtomicSaveMixin, SAC):
 
     # --- setup, save/load ---
     def _setup_model(self) -> None:
-        """SAC's setup, then the functional actor, the (log) inner step sizes and their optimiser, the per-task buffers."""
+        """SAC's setup, then the functional actor, the (log) inner step sizes and their optimiser, the per-task
+        buffers."""
         super()._setup_model()
         self.actor_distribution = ActorDistribution(self.actor)
         initial = torch.tensor([self.inner_actor_lr, self.inner_critic_lr], device=self.device).log()
@@ -363,7 +369,8 @@ class MAMLSAC(AtomicSaveMixin, SAC):
             episode_collided |= collisions
             for i, done in enumerate(dones):
                 if done:
-                    episode_stats.append({"return": float(episode_returns[i]), "success": float(infos[i].get("is_success", False)),
+                    episode_stats.append({"return": float(episode_returns[i]),
+                                          "success": float(infos[i].get("is_success", False)),
                                           "collision": float(episode_collided[i])})
                     episode_returns[i], episode_collided[i] = 0.0, False
             self._last_obs = new_obs
@@ -496,7 +503,8 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfMAMLSAC:
-        """Warm-up (plain multi-task SAC for ``warmup_steps``), then meta-iterations until ``total_timesteps`` env steps.
+        """Warm-up (plain multi-task SAC for ``warmup_steps``), then meta-iterations until ``total_timesteps`` env
+        steps.
 
         :param total_timesteps: env steps in total (support, query and warm-up interaction all count).
         :param callback: SB3 callback(s), called after every env step.
@@ -507,7 +515,9 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         :param progress_bar: show a progress bar (needs tqdm and rich).
         :return: the trained model.
         """
-        total_timesteps, callback = self._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        total_timesteps, callback = self._setup_learn(
+            total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
+        )
         callback.on_training_start(locals(), globals())
         while self.num_timesteps < total_timesteps:
             if self.num_timesteps < self.warmup_steps:
@@ -533,7 +543,12 @@ class MAMLSAC(AtomicSaveMixin, SAC):
 
     # --- fast adaptation ---
     def adapt(
-        self, env: gym.Env, task: Any = None, n_support: int | None = None, k: int | None = None, seed: int | None = None,
+        self,
+        env: gym.Env,
+        task: Any = None,
+        n_support: int | None = None,
+        k: int | None = None,
+        seed: int | None = None,
     ) -> AdaptedSACPolicy:
         """Collect ``n_support`` stochastic transitions on ``env`` (task ``task``) and take ``k`` inner rounds.
 
@@ -555,7 +570,9 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         if isinstance(env, VecEnv):
             raise TypeError("adapt() takes a single gymnasium env, not a VecEnv")
         if env.observation_space.shape != self.observation_space.shape:
-            raise ValueError(f"env observation shape {env.observation_space.shape} != model's {self.observation_space.shape}")
+            raise ValueError(
+                f"env observation shape {env.observation_space.shape} != model's {self.observation_space.shape}"
+            )
         snapshot = {name: t.detach().clone() for name, t in self.policy.state_dict().items()}
         variables = {name: getattr(self, name).detach().clone() for name in self._get_torch_save_params()[1]}
         training = self.policy.training

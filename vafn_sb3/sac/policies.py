@@ -1,4 +1,7 @@
-"""SAC-family policies (SAC, MTSAC, MAML-SAC): SB3's SAC MLP policy, or the same policy with the shared per-arm actor."""
+"""SAC-family policies (SAC, MTSAC, MAML-SAC).
+
+SB3's SAC MLP policy, or the same policy with the shared per-arm actor.
+"""
 
 from stable_baselines3.sac.policies import SACPolicy
 
