@@ -103,7 +103,8 @@ def cross_modal_probe(generator, items: int, heldout_items) -> dict:
     results = {}
     torch.manual_seed(0)
     for source in ("audio", "image"):
-        head = torch.nn.Sequential(torch.nn.Linear(model.config.latent_dim, model.config.decoder_hidden), torch.nn.ReLU(),
+        head = torch.nn.Sequential(torch.nn.Linear(model.config.latent_dim, model.config.decoder_hidden),
+                                   torch.nn.ReLU(),
                                    torch.nn.Linear(model.config.decoder_hidden, VOCAB_SIZE))
         optimizer = torch.optim.Adam(head.parameters(), lr=3e-3)
         rng = np.random.default_rng(0)
@@ -142,10 +143,12 @@ def main() -> None:
     heldout = evaluate_split(generator, "heldout", args.seeds, args.items, args.workers, rows)
     weights = generator.fusion_weights or {"audio": 1.0, "image": 1.0}
     lines = [f"Held-out split (unseen voices/variants, handwriting and fonts); {args.seeds} seeds x {args.items} items "
-             f"per cell; accuracy = exact sequence match (mean ± std over seeds); time per instruction on 1 CPU thread, "
+             f"per cell; accuracy = exact sequence match (mean ± std over seeds); "
+             f"time per instruction on 1 CPU thread, "
              f"features included (mean ± std over items). Fusion reliability weights (calibrated on in-distribution "
              f"validation data by the training command): {weights}.",
-             f"Wall time depends on machine load (1-min load average at start: {load[0]:.1f} on {os.cpu_count()} cores); "
+             f"Wall time depends on machine load "
+             f"(1-min load average at start: {load[0]:.1f} on {os.cpu_count()} cores); "
              "CPU time is the thread CPU time of the call, which other processes affect much less.", "",
              "| Input | Difficulty | Time (s) | CPU time (s) | Accuracy (%) | Paper accuracy (%) | Paper time (s) |",
              "|---|---|---|---|---|---|---|"]
@@ -160,8 +163,9 @@ def main() -> None:
             low, high = DIFFICULTY_LENGTHS[difficulty]
             lines.append(f"| {row} | {difficulty.capitalize()} ({low}-{high}) | {t_mean:.4f} ± {t_std:.4f} | "
                          f"{c_mean:.4f} ± {c_std:.4f} | {a_mean:.1f} ± {a_std:.1f} | {paper_text} | {paper_time} |")
-            csv_rows.append(["heldout", row, difficulty, f"{t_mean:.6f}", f"{t_std:.6f}", f"{c_mean:.6f}", f"{c_std:.6f}",
-                             f"{a_mean:.2f}", f"{a_std:.2f}", paper[k] if paper else "", args.seeds, args.items])
+            csv_rows.append(["heldout", row, difficulty, f"{t_mean:.6f}", f"{t_std:.6f}", f"{c_mean:.6f}",
+                             f"{c_std:.6f}", f"{a_mean:.2f}", f"{a_std:.2f}", paper[k] if paper else "", args.seeds,
+                             args.items])
     if args.in_distribution:
         compare_rows = ["Audio", "Visual", "Audio-Visual"]
         inside = evaluate_split(generator, "test", args.in_distribution, args.items, args.workers, compare_rows)

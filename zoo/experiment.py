@@ -1,7 +1,9 @@
 """``VAFNExperimentManager``: rl_zoo3's ExperimentManager with the few vafn-specific behaviours the zoo lacks.
 
-* evaluation reports success *and* collision rates (``eval/collision_rate``, ``rollout/collision_rate``, Monitor columns);
-* a sampled ``policy_kwargs`` is merged into the YAML's instead of replacing it (during ``-optimize`` and ``--trial-id``);
+* evaluation reports success *and* collision rates (``eval/collision_rate``, ``rollout/collision_rate``, Monitor
+  columns);
+* a sampled ``policy_kwargs`` is merged into the YAML's instead of replacing it (during ``-optimize`` and
+  ``--trial-id``);
 * tuning defaults to a local journal file, tags each trial with its worker, and on restart marks trials left RUNNING by
   a dead local worker as FAIL and re-queues their parameters, so a killed worker's study resumes cleanly.
 """
@@ -68,7 +70,8 @@ class VAFNExperimentManager(ExperimentManager):
 
     # --- callbacks ---
     def create_callbacks(self) -> None:
-        """The zoo's callbacks, with EvalCallback upgraded to also report collisions, plus the rollout collision rate."""
+        """The zoo's callbacks, with EvalCallback upgraded to also report collisions, plus the rollout collision
+        rate."""
         super().create_callbacks()
         for index, callback in enumerate(self.callbacks):
             if type(callback) is EvalCallback:

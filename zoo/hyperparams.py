@@ -23,7 +23,9 @@ def load_hyperparams(algo: str, env_id: str) -> tuple[dict[str, Any], int, str]:
     """``(constructor kwargs, n_timesteps, policy)`` of ``algo`` on ``env_id`` from ``hyperparams/<algo>.yml``."""
     path = HYPERPARAMS_DIR / f"{algo}.yml"
     if not path.is_file():
-        raise ValueError(f"no hyperparameter file {path.name}; known: {sorted(p.stem for p in HYPERPARAMS_DIR.glob('*.yml'))}")
+        raise ValueError(
+            f"no hyperparameter file {path.name}; known: {sorted(p.stem for p in HYPERPARAMS_DIR.glob('*.yml'))}"
+        )
     table = yaml.safe_load(path.read_text()) or {}
     if env_id not in table:
         raise ValueError(f"{path.name} has no entry for {env_id!r}; entries: {sorted(k for k in table if '/' in k)}")

@@ -59,7 +59,8 @@ def parse_schedule(text: str) -> dict[int, list[str]]:
 
 
 def main() -> None:
-    """Parse arguments, run the controller for ``--steps`` steps, write ``online_log.csv`` and ``online_distances.png``."""
+    """Parse arguments, run the controller for ``--steps`` steps, write ``online_log.csv`` and
+    ``online_distances.png``."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--model", type=Path, help="a saved MAMLSAC (.zip)")
@@ -68,7 +69,9 @@ def main() -> None:
     arrivals.add_argument("--schedule", type=parse_schedule, help="scripted arrivals 'STEP:INSTR;STEP:INSTR'")
     arrivals.add_argument("--poisson-rate", type=float, help="random arrivals per step, instructions from --split")
     parser.add_argument("--steps", type=int, default=2000, help="control steps to run")
-    parser.add_argument("--targets", default="default", choices=list(TARGET_MODES), help="where waypoint targets come from")
+    parser.add_argument(
+        "--targets", default="default", choices=list(TARGET_MODES), help="where waypoint targets come from"
+    )
     parser.add_argument("--split", default="test", choices=["train", "validation", "test"])
     parser.add_argument("--max-length", type=int, default=3)
     parser.add_argument("--k", type=int, help="adaptation rounds per instruction (default: the model's inner_steps)")

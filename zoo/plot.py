@@ -1,7 +1,8 @@
 """Compare algorithms across seeds: return, success rate and collision rate against steps, mean ± 95 % CI.
 
 Reads TensorBoard event files (the zoo's ``-tb`` layout ``<tb>/<EnvName>/<ALGO>_<N>/events.*``) and/or the zoo's
-evaluation logs (``<logs>/<algo>/<EnvName>_<N>/evaluations.npz``) and writes one PNG per metric plus a CSV of the curves:
+evaluation logs (``<logs>/<algo>/<EnvName>_<N>/evaluations.npz``) and writes one PNG per metric plus a CSV of the
+curves:
 
     python zoo/plot.py --tb tb/VAFN-ThreeArmReach-v0 --out results/training
     python zoo/plot.py --logs logs --env VAFN/ThreeArmReach-v0 --out results/training
@@ -86,7 +87,9 @@ def load_tensorboard(paths: Iterable[Path], metrics: Sequence[str]) -> dict[str,
     return curves
 
 
-def load_evaluations(log_folder: Path, env_name: str | None, metrics: Sequence[str]) -> dict[str, dict[str, list[Curve]]]:
+def load_evaluations(
+    log_folder: Path, env_name: str | None, metrics: Sequence[str]
+) -> dict[str, dict[str, list[Curve]]]:
     """``{metric: {algo: [curve per run]}}`` from ``<log_folder>/<algo>/<EnvName>_<N>/evaluations.npz``."""
     curves: dict[str, dict[str, list[Curve]]] = {m: defaultdict(list) for m in metrics}
     pattern = f"{env_name}_*/evaluations.npz" if env_name else "*/evaluations.npz"
@@ -144,7 +147,9 @@ def plot_metric(
     colours = plt.get_cmap("tab10")
     for index, (algo, agg) in enumerate(sorted(per_algo.items())):
         colour = colours(index % colours.N)
-        ax.plot(agg.x, agg.mean, color=colour, label=f"{algo} (n={agg.n_runs})", marker="o" if len(agg.x) < 20 else None)
+        ax.plot(
+            agg.x, agg.mean, color=colour, label=f"{algo} (n={agg.n_runs})", marker="o" if len(agg.x) < 20 else None
+        )
         if agg.n_runs > 1:
             ax.fill_between(agg.x, agg.low, agg.high, color=colour, alpha=0.2)
     ax.set_xlabel(xlabel)
@@ -192,7 +197,9 @@ def make_plots(curves: dict[str, dict[str, list[Curve]]], out: Path, title: str 
     if not aggregates:
         raise ValueError("none of the runs logged return, success or collision")
     written = [
-        plot_metric(per_algo, LABELS[metric], out.parent / f"{out.name}_{metric}.png", title, rate=metric in RATE_METRICS)
+        plot_metric(
+            per_algo, LABELS[metric], out.parent / f"{out.name}_{metric}.png", title, rate=metric in RATE_METRICS
+        )
         for metric, per_algo in aggregates.items()
     ]
     written.append(write_curves_csv(aggregates, out.parent / f"{out.name}_curves.csv"))
@@ -209,7 +216,9 @@ def main(argv: list[str] | None = None) -> list[Path]:
     """Command-line entry point; returns the written files."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--tb", nargs="*", default=[], type=Path, help="TensorBoard folders (searched recursively)")
-    parser.add_argument("--logs", type=Path, default=None, help="zoo log folder with <algo>/<EnvName>_<N>/evaluations.npz")
+    parser.add_argument(
+        "--logs", type=Path, default=None, help="zoo log folder with <algo>/<EnvName>_<N>/evaluations.npz"
+    )
     parser.add_argument("--env", default=None, help="env ID or EnvName to select in --logs (default: all)")
     parser.add_argument("--metrics", nargs="+", default=list(TB_TAGS), choices=list(TB_TAGS))
     parser.add_argument("--algos", nargs="*", default=None, help="keep only these algorithms (as labelled)")
@@ -256,7 +265,11 @@ def plot_online_distances(controller: Any, path: str | Path) -> Path:
     for index, entry in enumerate(controller.log):
         if entry.start_step < 0:
             continue
-        end = entry.completion_step if entry.completion_step >= 0 else (int(steps[-1]) if len(steps) else entry.start_step)
+        end = (
+            entry.completion_step
+            if entry.completion_step >= 0
+            else (int(steps[-1]) if len(steps) else entry.start_step)
+        )
         colour = "tab:green" if entry.success else "tab:red"
         ax.axvspan(entry.start_step, end, color=colour, alpha=0.12 if index % 2 else 0.2, lw=0)
         ax.text(entry.start_step, top, f"#{entry.sequence} [{entry.instruction}]", fontsize=7, va="top", rotation=90)
