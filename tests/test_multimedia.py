@@ -63,7 +63,10 @@ def test_import_is_light():
     import subprocess
     import sys
 
-    code = "import sys, vafn_gym.multimedia; print(any(m in sys.modules for m in ('librosa', 'cv2', 'espeakng_loader')))"
+    code = (
+        "import sys, vafn_gym.multimedia; "
+        "print(any(m in sys.modules for m in ('librosa', 'cv2', 'espeakng_loader')))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == "False"
 
@@ -425,7 +428,10 @@ def test_batchnorm_folding_keeps_outputs():
     model.eval()
     folded = fold_batchnorm(model)
     with torch.inference_mode():
-        for modality, x, n in (("audio", torch.randn(1, N_MELS, 77), 77), ("image", torch.rand(1, 1, IMAGE_HEIGHT, 90), 90)):
+        for modality, x, n in (
+            ("audio", torch.randn(1, N_MELS, 77), 77),
+            ("image", torch.rand(1, 1, IMAGE_HEIGHT, 90), 90),
+        ):
             a, _ = model.encode(modality, x, torch.tensor([n]))
             b, _ = folded.encode(modality, x, torch.tensor([n]))
             assert torch.allclose(a, b, atol=1e-4)

@@ -93,7 +93,9 @@ def test_adapting_controller_leaves_model_untouched_and_writes_outputs(tmp_path)
 
     rows = list(csv.DictReader(controller.write_csv(tmp_path / "log.csv").open()))
     assert [row["instruction"] for row in rows] == ["2,1", "3"]
-    assert {"arrival_time", "adaptation_time_s", "first_action_time", "completion_step", "success", "collisions"} <= set(rows[0])
+    assert {
+        "arrival_time", "adaptation_time_s", "first_action_time", "completion_step", "success", "collisions"
+    } <= set(rows[0])
     assert plot_online_distances(controller, tmp_path / "distances.png").stat().st_size > 0
     controller.close()
 

@@ -148,7 +148,8 @@ def test_weights_round_trip_gives_identical_predictions(name, env, tmp_path):
     obs = observations(env)
     expected = model.predict(obs, deterministic=True)[0]
     for loaded in (load_weights(path), load_weights(path, env=env)):
-        assert isinstance(loaded, type(model)) and loaded.policy_kwargs == model.policy_kwargs  # SB3 SAC loads as vafn's SAC
+        # SB3 SAC loads as vafn's SAC
+        assert isinstance(loaded, type(model)) and loaded.policy_kwargs == model.policy_kwargs
         np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], expected)
         for key, value in model.policy.state_dict().items():
             assert th.equal(loaded.policy.state_dict()[key], value), key

@@ -1,4 +1,7 @@
-"""Tests of the RL-Zoo front end: algorithm registration, training from the YAMLs, tuning, plots, recording, reproduce."""
+"""Tests of the RL-Zoo front end.
+
+Algorithm registration, training from the YAMLs, tuning, plots, recording, reproduce.
+"""
 
 from __future__ import annotations
 
@@ -112,7 +115,8 @@ def test_optimize_two_trials_then_reuse_a_trial_with_merged_policy_kwargs(tmp_pa
         f"{ENV_ID}:\n  n_timesteps: 200\n  policy: MlpPolicy\n  learning_starts: 50\n"
         "  policy_kwargs: \"dict(net_arch=[256, 256], log_std_init=-2.5)\"\n"
     )
-    common = ["--algo", "sac", "--env", ENV_ID, "-f", str(tmp_path), "-conf", str(conf), "--env-kwargs", *FAST_ENV_KWARGS]
+    common = ["--algo", "sac", "--env", ENV_ID, "-f", str(tmp_path), "-conf", str(conf),
+              "--env-kwargs", *FAST_ENV_KWARGS]
     train_main([*common, "-optimize", "--n-trials", "2", "-n", "150", "--n-evaluations", "1", "--eval-episodes", "1",
                 "--storage", str(storage), "--study-name", "s", "--sampler", "random", "--pruner", "none",
                 "--seed", "3", "--no-optim-plots"])
@@ -248,8 +252,8 @@ def test_reproduce_smoke_writes_every_artefact(tmp_path: Path) -> None:
     result = _reproduce_smoke(tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     out = tmp_path / "results"
-    for name in ("fig3_adaptation.png", "fig3_adaptation.csv", "fig3_adaptation_summary.csv", "fig4_online_maml_sac.png",
-                 "fig4_online_scripted.png", "training_return.png", "table1_smoke.md", "SUMMARY.md"):
+    for name in ("fig3_adaptation.png", "fig3_adaptation.csv", "fig3_adaptation_summary.csv",
+                 "fig4_online_maml_sac.png", "fig4_online_scripted.png", "training_return.png", "table1_smoke.md", "SUMMARY.md"):
         assert (out / name).is_file(), f"{name} missing; stderr: {result.stderr[-2000:]}"
     rows = (out / "fig3_adaptation.csv").read_text().splitlines()
     assert len(rows) == 1 + 2 * 3, "one row per algorithm x K (1 task, 1 seed, K in 0, 1, 2)"
