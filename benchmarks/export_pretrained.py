@@ -22,13 +22,13 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from vafn_gym import InstructionBenchmark  # noqa: E402
-from vafn_sb3 import save_weights  # noqa: E402
-from vafn_sb3.pretrained import _stem, load_pretrained, pretrained_path  # noqa: E402
+from vafn_sb3 import load_weights, save_weights  # noqa: E402
+from vafn_sb3.pretrained import _stem, pretrained_path  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 
 
 def main() -> None:
-    """Export, reload through ``load_pretrained`` and evaluate; write the metadata."""
+    """Export, reload the exported file and evaluate it; write the metadata."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--algo", required=True)
     parser.add_argument("--env", default="VAFN/ThreeArmReach-v1")
@@ -41,7 +41,7 @@ def main() -> None:
     register_algorithms()
     model = require_algorithm(args.algo).load(args.model, device="cpu")
     save_weights(model, pretrained_path(args.algo, args.env))
-    policy = load_pretrained(args.algo, args.env)
+    policy = load_weights(pretrained_path(args.algo, args.env))  # exactly the shipped file
     start = time.perf_counter()
     rows = InstructionBenchmark(args.env, 1, 10, n_test=args.n_test).evaluate(policy)
     summary = json.loads(args.summary.read_text())

@@ -493,7 +493,7 @@ def _fig3_verdict(best: tuple[float, str], aggregates: dict[str, dict[str, Aggre
 
 
 def main(argv: list[str] | None = None) -> Path:
-    """Command-line entry point; returns the path of SUMMARY.md."""
+    """Command-line entry point; returns the path of SUMMARY.md (or of the results folder with ``--fig4-only``)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     group = parser.add_mutually_exclusive_group(required=True)
     for name in MODES:
@@ -505,6 +505,8 @@ def main(argv: list[str] | None = None) -> Path:
     parser.add_argument("--skip-table1", action="store_true", help="do not run the multimedia benchmark")
     parser.add_argument("--resume", action="store_true",
                         help="reuse models already trained in --work (their recorded training time counts) and re-evaluate")
+    parser.add_argument("--fig4-only", action="store_true",
+                        help="only Fig. 4 with the packaged pretrained policies (no training; a few minutes)")
     args = parser.parse_args(argv)
     mode = MODES[args.mode]
     if args.algos:
@@ -514,6 +516,11 @@ def main(argv: list[str] | None = None) -> Path:
     work = args.work or REPO_ROOT / "runs" / f"reproduce-{mode.name}"
     out = args.out or (work / "results" if mode.name == "smoke" else REPO_ROOT / "results")
     out.mkdir(parents=True, exist_ok=True)
+    if args.fig4_only:
+        for name, log in fig4(mode, out).items():
+            outcomes = ", ".join(f"[{e['instruction']}] {e['outcome']}, {e['collisions']} contact steps" for e in log)
+            print(f"{name}: {sum(bool(e['success']) for e in log)}/{len(FIG4_PHASES)} phases succeeded: {outcomes}")
+        return out
     if (work / "logs").exists() and not args.resume:
         raise SystemExit(f"{work}/logs exists from an earlier run; pass --resume to reuse its models, or another --work")
 
