@@ -63,8 +63,9 @@ def train_one(args: argparse.Namespace, seed: int, benchmark: InstructionBenchma
             bar.update(model.num_timesteps - before)
             final = model.num_timesteps >= steps
             wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0  # evaluation time included
-            metrics = evaluate(model, benchmark, args.n_test if final else args.n_eval)
-            rows.append({"seed": seed, "timesteps": model.num_timesteps, "n_tasks": args.n_test if final else args.n_eval,
+            n_tasks = args.n_test if final else args.n_eval
+            metrics = evaluate(model, benchmark, n_tasks)
+            rows.append({"seed": seed, "timesteps": model.num_timesteps, "n_tasks": n_tasks,
                          "wall_s": round(wall, 1), "cpu_s": round(cpu, 1), **metrics})
             bar.set_postfix(success=f"{metrics['success']:.2f}", collision=f"{metrics['collision']:.2f}")
     env.close()

@@ -50,7 +50,8 @@ def main() -> None:
             line = f"| {robot} | {n_arms} | not applicable: {str(error)[:90]} | | |"
         else:
             success, collision = np.mean([r["success"] for r in rows]), np.mean([r["collision"] for r in rows])
-            line = f"| {robot} | {n_arms} | {success:.2f} | {collision:.2f} | {np.mean([r['steps'] for r in rows]):.0f} |"
+            steps = np.mean([r["steps"] for r in rows])
+            line = f"| {robot} | {n_arms} | {success:.2f} | {collision:.2f} | {steps:.0f} |"
         print(line, flush=True)
         lines.append(line)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -298,7 +298,7 @@ def run_stream(policy: Any, mode: Mode, seed: int, k: int) -> dict[str, np.ndarr
 
 
 def plot_fig4(trace: dict[str, Any], title: str, path: Path) -> Path:
-    """Top: distance-to-target of each arm, tolerance line, phase boundaries; bottom: approaching vs returning-holding."""
+    """Top: each arm's distance to target, tolerance line, phase boundaries; bottom: approaching vs holding."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -407,7 +407,8 @@ def _at_k(aggregates: dict[str, dict[str, Aggregate]], metric: str, algo: str, k
 def write_summary(mode: Mode, jobs: list[Job], aggregates: dict[str, dict[str, Aggregate]], fig4_log: dict[str, Any],
                   table: dict[str, Any], times: dict[str, float], out: Path) -> Path:
     """results/SUMMARY.md: each result beside the paper's claim, with commit, seeds, wall times and honest gaps."""
-    dirty = " (working tree had uncommitted changes)" if _git("status", "--porcelain", "--", "zoo", "vafn_sb3", "vafn_gym") else ""
+    changed = _git("status", "--porcelain", "--", "zoo", "vafn_sb3", "vafn_gym")
+    dirty = " (working tree had uncommitted changes)" if changed else ""
     k_max = max(mode.k_values)
     k_mid = 20 if 20 in mode.k_values else k_max
     lines = [
@@ -415,18 +416,23 @@ def write_summary(mode: Mode, jobs: list[Job], aggregates: dict[str, dict[str, A
         f"Command: `python zoo/reproduce.py --{mode.name}` · commit `{_git('rev-parse', '--short', 'HEAD')}`{dirty} · "
         f"seeds {list(mode.seeds)} · "
         + ("**resumed** (`--resume`): the models were trained by an earlier run of the same mode; per-job times below "
-           "include their recorded training time, the wall times in this line cover only this run · " if times["resumed"] else "")
+           "include their recorded training time, the wall times in this line cover only this run · "
+           if times["resumed"] else "")
         + f"total wall time {times['total']/60:.1f} min on {os.cpu_count()} cores "
-        f"(train + adapt {times['fig3']/60:.1f} min, Fig. 4 {times['fig4']/60:.1f} min, Table 1 {times['table1']/60:.1f} min); "
-        f"the training and adaptation jobs used {sum(j.cpu_s for j in jobs)/60:.1f} CPU-min in total (1-min load average "
+        f"(train + adapt {times['fig3']/60:.1f} min, Fig. 4 {times['fig4']/60:.1f} min, "
+        f"Table 1 {times['table1']/60:.1f} min); "
+        f"the training and adaptation jobs used {sum(j.cpu_s for j in jobs)/60:.1f} CPU-min in total "
+        "(1-min load average "
         f"at start: {times['load']:.1f}; other users' jobs share the cores, so wall time overstates the cost).",
         "",
         "## Fig. 3: adaptation on held-out instructions (`fig3_adaptation.png`, `fig3_adaptation.csv`)", "",
         f"Paper: {PAPER_FIG3}", "",
-        f"Ours: {mode.env_id}, instructions of length 1-{mode.max_length} from the *test* split ({mode.n_tasks} tasks), "
+        f"Ours: {mode.env_id}, instructions of length 1-{mode.max_length} from the *test* split "
+        f"({mode.n_tasks} tasks), "
         f"{mode.timesteps} training steps per algorithm and seed (equal budgets), {mode.n_support} support steps, "
         f"mean [95% CI] over seeds {list(mode.seeds)}.", "",
-        f"| algorithm | success K=0 | success K={k_mid} | success K={k_max} | collision K={k_max} | return K=0 | return K={k_max} | train wall (s) |",
+        f"| algorithm | success K=0 | success K={k_mid} | success K={k_max} | collision K={k_max} | return K=0 | "
+        f"return K={k_max} | train wall (s) |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for algo in mode.algos:
@@ -437,15 +443,19 @@ def write_summary(mode: Mode, jobs: list[Job], aggregates: dict[str, dict[str, A
             lines.append(f"| {algo} | FAILED: {'; '.join(failed)} | | | | | | {wall:.0f} |")
             continue
         lines.append(
-            f"| {algo} | {_at_k(aggregates, 'success_rate', algo, 0)} | {_at_k(aggregates, 'success_rate', algo, k_mid)} | "
+            f"| {algo} | {_at_k(aggregates, 'success_rate', algo, 0)} | "
+            f"{_at_k(aggregates, 'success_rate', algo, k_mid)} | "
             f"{_at_k(aggregates, 'success_rate', algo, k_max)} | {_at_k(aggregates, 'collision_rate', algo, k_max)} | "
-            f"{_at_k(aggregates, 'return_mean', algo, 0)} | {_at_k(aggregates, 'return_mean', algo, k_max)} | {wall:.0f} |"
+            f"{_at_k(aggregates, 'return_mean', algo, 0)} | {_at_k(aggregates, 'return_mean', algo, k_max)} | "
+            f"{wall:.0f} |"
         )
-    best = max((aggregates["success_rate"][a].mean.max(), a) for a in aggregates["success_rate"]) if aggregates["success_rate"] else (0.0, "none")
+    success = aggregates["success_rate"]
+    best = max((success[a].mean.max(), a) for a in success) if success else (0.0, "none")
     lines += ["", _fig3_verdict(best, aggregates, mode), ""]
     lines += ["## Fig. 4: long-horizon online control with the pretrained policies (`fig4_online_<policy>.png`)", "",
               f"Paper: {PAPER_FIG4}", "",
-              f"Ours: {mode.fig4_steps} steps of {FIG4_ENV}, phases {', '.join(f'[{p}]' for p in FIG4_PHASES)} arriving every "
+              f"Ours: {mode.fig4_steps} steps of {FIG4_ENV}, phases "
+              f"{', '.join(f'[{p}]' for p in FIG4_PHASES)} arriving every "
               f"{mode.fig4_steps // len(FIG4_PHASES)} steps.", "",
               "| policy | instructions started | succeeded | collisions | outcomes |", "|---|---|---|---|---|"]
     for name, log in fig4_log.items():
@@ -498,13 +508,15 @@ def main(argv: list[str] | None = None) -> Path:
     group = parser.add_mutually_exclusive_group(required=True)
     for name in MODES:
         group.add_argument(f"--{name}", dest="mode", action="store_const", const=name, help=f"{name} mode")
-    parser.add_argument("--out", type=Path, default=None, help="results folder (default: results/, smoke: <work>/results)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="results folder (default: results/, smoke: <work>/results)")
     parser.add_argument("--work", type=Path, default=None, help="models and logs (default: runs/reproduce-<mode>)")
     parser.add_argument("--jobs", type=int, default=min(os.cpu_count() or 1, 16), help="parallel training processes")
     parser.add_argument("--algos", nargs="+", default=None, choices=FIG3_ALGOS, help="subset of Fig. 3's algorithms")
     parser.add_argument("--skip-table1", action="store_true", help="do not run the multimedia benchmark")
     parser.add_argument("--resume", action="store_true",
-                        help="reuse models already trained in --work (their recorded training time counts) and re-evaluate")
+                        help="reuse models already trained in --work (their recorded training time counts) "
+                        "and re-evaluate")
     parser.add_argument("--fig4-only", action="store_true",
                         help="only Fig. 4 with the packaged pretrained policies (no training; a few minutes)")
     args = parser.parse_args(argv)
@@ -522,7 +534,9 @@ def main(argv: list[str] | None = None) -> Path:
             print(f"{name}: {sum(bool(e['success']) for e in log)}/{len(FIG4_PHASES)} phases succeeded: {outcomes}")
         return out
     if (work / "logs").exists() and not args.resume:
-        raise SystemExit(f"{work}/logs exists from an earlier run; pass --resume to reuse its models, or another --work")
+        raise SystemExit(
+            f"{work}/logs exists from an earlier run; pass --resume to reuse its models, or another --work"
+        )
 
     from zoo.registry import UNAVAILABLE, register_algorithms
 
@@ -533,7 +547,9 @@ def main(argv: list[str] | None = None) -> Path:
 
     times: dict[str, float] = {"load": os.getloadavg()[0], "resumed": float(args.resume)}
     start = time.perf_counter()
-    jobs = run_jobs([Job(algo, seed, mode, work, resume=args.resume) for algo in mode.algos for seed in mode.seeds], args.jobs)
+    jobs = run_jobs(
+        [Job(algo, seed, mode, work, resume=args.resume) for algo in mode.algos for seed in mode.seeds], args.jobs
+    )
     rows = [row for job in jobs for row in job.rows]
     aggregates = fig3_aggregates(rows) if rows else {metric: {} for metric in FIG3_METRICS}
     if rows:
