@@ -2,7 +2,10 @@
 
 Examples::
 
-    # a scripted schedule (step:instruction; ...), the scripted controller as the policy (no adaptation)
+    # the packaged learned policy on a scripted schedule (step:instruction; ...)
+    python zoo/online_control.py --pretrained sac --steps 1500 --schedule "0:2,3,1;10:1,2;600:3,1,2" --out runs/online
+
+    # the same with the scripted controller as the policy (no adaptation)
     python zoo/online_control.py --policy scripted --steps 1500 --schedule "0:2,3,1;10:1,2;600:3,1,2" --out runs/online
 
     # a trained MAML-SAC, random (Poisson) arrivals of held-out test instructions, K=5 adaptation rounds each
@@ -13,19 +16,25 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
-import numpy as np
-import torch
+REPO_ROOT = Path(__file__).resolve().parents[1]
+if str(REPO_ROOT) not in sys.path:  # `python zoo/online_control.py` puts zoo/ first on the path, not the repo root
+    sys.path.insert(0, str(REPO_ROOT))
 
-import vafn_gym  # noqa: F401  (registers the env IDs)
-from vafn_gym import TARGET_MODES, ScriptedController
-from vafn_gym.queue import PoissonArrivals, ScheduledArrivals
-from vafn_sb3.maml_sac import MAMLSAC
-from vafn_sb3.online import OnlineController
-from zoo.plot import plot_online_distances
+import gymnasium as gym  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+import vafn_gym  # noqa: E402,F401  (registers the env IDs)
+from vafn_gym import TARGET_MODES, ScriptedController  # noqa: E402
+from vafn_gym.queue import PoissonArrivals, ScheduledArrivals  # noqa: E402
+from vafn_sb3 import load_pretrained  # noqa: E402
+from vafn_sb3.maml_sac import MAMLSAC  # noqa: E402
+from vafn_sb3.online import OnlineController  # noqa: E402
+from zoo.plot import plot_online_distances  # noqa: E402
 
 
 class RandomPolicy:
@@ -65,6 +74,7 @@ def main() -> None:
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--model", type=Path, help="a saved MAMLSAC (.zip)")
     source.add_argument("--policy", choices=["scripted", "random"], help="a reference policy instead of a model")
+    source.add_argument("--pretrained", help="a packaged policy by algorithm (e.g. sac): no training needed")
     arrivals = parser.add_mutually_exclusive_group(required=True)
     arrivals.add_argument("--schedule", type=parse_schedule, help="scripted arrivals 'STEP:INSTR;STEP:INSTR'")
     arrivals.add_argument("--poisson-rate", type=float, help="random arrivals per step, instructions from --split")
@@ -90,7 +100,9 @@ def main() -> None:
         stream.arrival_process = ScheduledArrivals(args.schedule)
     else:
         stream.arrival_process = PoissonArrivals(args.poisson_rate, sampler=stream.sampler.sample, seed=args.seed)
-    if args.model is not None:
+    if args.pretrained is not None:
+        model = load_pretrained(args.pretrained)
+    elif args.model is not None:
         model = MAMLSAC.load(args.model)
     elif args.policy == "scripted":
         model = ScriptedController.for_env(env)

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vafn_gym.files import atomic_write
 from vafn_gym.multimedia.constants import BLANK
 
 #: Default paths of the packaged checkpoint (weights + JSON metadata).
@@ -222,7 +223,7 @@ def main(argv=None) -> dict:
     args.out.mkdir(parents=True, exist_ok=True)
     model.eval()
     state = {name: tensor.detach().clone() for name, tensor in model.state_dict().items()}
-    torch.save(state, args.out / f"{CHECKPOINT_NAME}.pt")
+    atomic_write(args.out / f"{CHECKPOINT_NAME}.pt", lambda tmp: torch.save(state, tmp))
     metadata = {
         "config": config.to_dict(),
         "command": "python -m vafn_gym.multimedia.train "
@@ -241,7 +242,7 @@ def main(argv=None) -> dict:
     metadata.update(calibrate_fusion(model, validation["test"]))
     metadata["total_seconds"] = round(time.time() - started, 1)
     metadata["cpu_seconds"] = round(_cpu_seconds(), 1)
-    (args.out / f"{CHECKPOINT_NAME}.json").write_text(json.dumps(metadata, indent=2))
+    atomic_write(args.out / f"{CHECKPOINT_NAME}.json", lambda tmp: tmp.write_text(json.dumps(metadata, indent=2)))
     return metadata
 
 

@@ -18,12 +18,10 @@ import inspect
 import io
 import json
 import os
-import secrets
 import zipfile
 import zlib
 from pathlib import Path
 from types import ModuleType
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -34,6 +32,8 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.save_util import recursive_getattr, recursive_setattr
 from stable_baselines3.common.utils import ConstantSchedule, FloatSchedule, check_for_correct_spaces
 from torch import nn
+
+from vafn_gym.files import atomic_write  # re-exported: one implementation for every writer
 
 #: ``format`` field of a weights file's ``config.json`` and the version this module writes and reads.
 WEIGHTS_FORMAT = "vafn-weights"
@@ -74,32 +74,6 @@ _CLASS_KWARGS = {
 
 class _NotJSON(TypeError):
     """A value with no JSON form."""
-
-
-def atomic_write(path: str | os.PathLike[str], write_fn: Callable[[Path], None]) -> Path:
-    """Run ``write_fn(tmp)`` on a fresh temporary path in ``path``'s folder, then rename it onto ``path``.
-
-    Either the complete new file replaces ``path`` or, if ``write_fn`` raises (or the process dies), ``path`` keeps its
-    previous content and the temporary file is removed (a killed process may leave a hidden ``.<name>.*.tmp`` file).
-    The temporary path keeps ``path``'s suffix, so writers that add a default suffix (SB3's ``save``) leave it as is.
-
-    :param path: the file to (over)write; its folder is created if needed.
-    :param write_fn: writes the whole file to the path it is given.
-    :return: ``path`` as a ``Path``.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(8)}.tmp{path.suffix}")
-    try:
-        write_fn(tmp)
-        # Flush to disk before the rename: otherwise a power loss can leave the renamed file empty.
-        with open(tmp, "rb+") as file:
-            os.fsync(file.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
 
 
 def sb3_zip_path(path: str | os.PathLike[str]) -> Path:
