@@ -253,7 +253,7 @@ def test_reproduce_smoke_writes_every_artefact(tmp_path: Path) -> None:
     assert result.returncode == 0, result.stderr[-3000:]
     out = tmp_path / "results"
     for name in ("fig3_adaptation.png", "fig3_adaptation.csv", "fig3_adaptation_summary.csv",
-                 "fig4_online_maml_sac.png", "fig4_online_scripted.png", "training_return.png", "table1_smoke.md",
+                 "fig4_online_sac.png", "fig4_online_scripted.png", "training_return.png", "table1_smoke.md",
                  "SUMMARY.md"):
         assert (out / name).is_file(), f"{name} missing; stderr: {result.stderr[-2000:]}"
     rows = (out / "fig3_adaptation.csv").read_text().splitlines()
