@@ -127,10 +127,7 @@ def test_arms_stand_on_their_layout_and_rest_near_home(robot):
 @pytest.mark.parametrize("n_arms", [2, 4, 6])
 def test_check_env_for_every_robot_and_arm_count(n_arms, robot):
     env = gym.make("VAFN/MultiArmReach-v1", n_arms=n_arms, robot=robot)
-    # Gymnasium's determinism check not on the Panda yet: its uncontrolled fingers are not reset, so seeded episodes
-    # differ in the last bits.
-    if robot != "panda":
-        gym_check_env(env.unwrapped, skip_render_check=True)
+    gym_check_env(env.unwrapped, skip_render_check=True)  # includes the seeded-determinism check
     sb3_check_env(env.unwrapped)
     assert env.observation_space.shape == (5 * n_arms,) and env.action_space.shape == (3 * n_arms,)
     env.close()
