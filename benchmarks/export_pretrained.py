@@ -18,12 +18,11 @@ from pathlib import Path
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
-import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from vafn_gym import InstructionBenchmark  # noqa: E402
+from vafn_gym import InstructionBenchmark, episode_rates  # noqa: E402
 from vafn_sb3 import load_weights, save_weights  # noqa: E402
-from vafn_sb3.pretrained import _stem, pretrained_path  # noqa: E402
+from vafn_sb3.pretrained import pretrained_path  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 
 
@@ -44,6 +43,7 @@ def main() -> None:
     policy = load_weights(pretrained_path(args.algo, args.env))  # exactly the shipped file
     start = time.perf_counter()
     rows = InstructionBenchmark(args.env, 1, 10, n_test=args.n_test).evaluate(policy)
+    rates = episode_rates(rows)
     summary = json.loads(args.summary.read_text())
     info = {
         "algo": args.algo,
@@ -55,14 +55,12 @@ def main() -> None:
         "training_cpu_s": summary["cpu_s"],
         "evaluation": {
             "protocol": f"InstructionBenchmark({args.env!r}, 1, 10, n_test={args.n_test}).evaluate",
-            "success": float(np.mean([r["success"] for r in rows])),
-            "collision": float(np.mean([r["collision"] for r in rows])),
-            "episode_steps": float(np.mean([r["steps"] for r in rows])),
+            **{key: rates[key] for key in ("success", "collision", "episode_steps")},
             "eval_wall_s": round(time.perf_counter() - start, 1),
         },
         "export_command": " ".join(sys.argv),
     }
-    (pretrained_path(args.algo, args.env).parent / f"{_stem(args.algo, args.env)}.json").write_text(
+    pretrained_path(args.algo, args.env).with_suffix(".json").write_text(
         json.dumps(info, indent=2) + "\n"
     )
     print(json.dumps(info, indent=2))

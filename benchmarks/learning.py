@@ -29,23 +29,12 @@ import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import vafn_gym  # noqa: E402,F401  (registers the env IDs)
-from vafn_gym import InstructionBenchmark  # noqa: E402
+from vafn_gym import InstructionBenchmark, episode_rates  # noqa: E402
 from zoo.hyperparams import load_hyperparams  # noqa: E402
 from zoo.plot import confidence_half_width  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 
 SUCCESS_TARGET = 0.95
-
-
-def evaluate(model, benchmark: InstructionBenchmark, n_tasks: int) -> dict[str, float]:
-    """Success, collision rate and mean episode steps of ``model`` on the first ``n_tasks`` test instructions."""
-    rows = benchmark.evaluate(model, n_tasks=n_tasks)
-    return {
-        "success": float(np.mean([r["success"] for r in rows])),
-        "collision": float(np.mean([r["collision"] for r in rows])),
-        "episode_steps": float(np.mean([r["steps"] for r in rows])),
-        "waypoint_fraction": float(np.mean([r["waypoints_reached"] / max(r["length"], 1) for r in rows])),
-    }
 
 
 def train_one(args: argparse.Namespace, seed: int, benchmark: InstructionBenchmark) -> tuple[list[dict], object]:
@@ -64,7 +53,7 @@ def train_one(args: argparse.Namespace, seed: int, benchmark: InstructionBenchma
             final = model.num_timesteps >= steps
             wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0  # evaluation time included
             n_tasks = args.n_test if final else args.n_eval
-            metrics = evaluate(model, benchmark, n_tasks)
+            metrics = episode_rates(benchmark.evaluate(model, n_tasks=n_tasks))
             rows.append({"seed": seed, "timesteps": model.num_timesteps, "n_tasks": n_tasks,
                          "wall_s": round(wall, 1), "cpu_s": round(cpu, 1), **metrics})
             bar.set_postfix(success=f"{metrics['success']:.2f}", collision=f"{metrics['collision']:.2f}")

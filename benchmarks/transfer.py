@@ -17,10 +17,9 @@ from pathlib import Path
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
-import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from vafn_gym import InstructionBenchmark  # noqa: E402
+from vafn_gym import InstructionBenchmark, episode_rates  # noqa: E402
 from vafn_sb3 import load_pretrained  # noqa: E402
 
 SETTINGS = (
@@ -49,9 +48,9 @@ def main() -> None:
         except ValueError as error:  # the actor's input layout does not fit this arm count
             line = f"| {robot} | {n_arms} | not applicable: {str(error)[:90]} | | |"
         else:
-            success, collision = np.mean([r["success"] for r in rows]), np.mean([r["collision"] for r in rows])
-            steps = np.mean([r["steps"] for r in rows])
-            line = f"| {robot} | {n_arms} | {success:.2f} | {collision:.2f} | {steps:.0f} |"
+            rates = episode_rates(rows)
+            line = (f"| {robot} | {n_arms} | {rates['success']:.2f} | {rates['collision']:.2f} | "
+                    f"{rates['episode_steps']:.0f} |")
         print(line, flush=True)
         lines.append(line)
     args.out.mkdir(parents=True, exist_ok=True)

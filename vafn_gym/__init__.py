@@ -5,7 +5,7 @@ Importing the package registers the environment IDs listed in :data:`ENV_IDS` wi
 
 from gymnasium.envs.registration import register
 
-from vafn_gym.benchmarks import InstructionBenchmark, run_episode
+from vafn_gym.benchmarks import InstructionBenchmark, episode_rates, run_episode
 from vafn_gym.controllers import ScriptedController
 from vafn_gym.envs import MultiArmEnv, MultiArmStreamEnv
 from vafn_gym.instructions import Instruction, Waypoint, difficulty_of
@@ -81,5 +81,6 @@ __all__ = [
     "Transcription",
     "Waypoint",
     "difficulty_of",
+    "episode_rates",
     "run_episode",
 ]

@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 
 from vafn_gym.constants import MAX_INSTRUCTION_LENGTH
 from vafn_gym.instructions import Instruction
@@ -113,3 +114,14 @@ def run_episode(policy: Any, env: gym.Env, seed: int | None, deterministic: bool
                 "waypoints_reached": int(info.get("waypoint_index", 0)),
             }
 
+
+def episode_rates(rows: list[dict[str, Any]]) -> dict[str, float]:
+    """Mean ``success``, ``collision``, ``episode_steps`` and reached-waypoint fraction of :meth:`evaluate` rows."""
+    if not rows:
+        raise ValueError("no evaluation rows")
+    return {
+        "success": float(np.mean([r["success"] for r in rows])),
+        "collision": float(np.mean([r["collision"] for r in rows])),
+        "episode_steps": float(np.mean([r["steps"] for r in rows])),
+        "waypoint_fraction": float(np.mean([r["waypoints_reached"] / max(r["length"], 1) for r in rows])),
+    }

@@ -27,6 +27,7 @@ from vafn_gym.constants import (
     POS_SLICE,
     V_MAX,
 )
+from vafn_gym.layout import ArmLayout
 
 #: Probe moves (unit directions) made by a newly active arm before the first trilateration.
 PROBE_DIRECTIONS = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
@@ -82,7 +83,7 @@ class ScriptedController:
     def act(self, observation: np.ndarray) -> np.ndarray:
         """The joint action for one observation."""
         obs = np.asarray(observation, dtype=np.float64)
-        blocks = {arm: obs[(arm - 1) * self.obs_per_arm: arm * self.obs_per_arm] for arm in self.arm_ids}
+        blocks = {arm: obs[ArmLayout.block_slice(arm, self.obs_per_arm)] for arm in self.arm_ids}
         positions = {arm: block[POS_SLICE] for arm, block in blocks.items()}
         distances = {arm: block[DIST_INDEX] for arm, block in blocks.items()}
         active = next((arm for arm, block in blocks.items() if round(block[PHASE_INDEX]) == PHASE_EXECUTING), None)
@@ -95,9 +96,12 @@ class ScriptedController:
         action = np.zeros(ACTION_PER_ARM * len(self.arm_ids))
         for arm in self.arm_ids:
             if arm != active:
-                action[self._action_slice(arm)] = self._velocity_toward(positions[arm], self.homes[arm])
+                action[ArmLayout.block_slice(arm, ACTION_PER_ARM)] = self._velocity_toward(
+                    positions[arm], self.homes[arm]
+                )
         if active is not None:
-            action[self._action_slice(active)] = self._active_command(active, blocks[active], positions, distances)
+            command = self._active_command(active, blocks[active], positions, distances)
+            action[ArmLayout.block_slice(active, ACTION_PER_ARM)] = command
         return action.astype(np.float32)
 
     def _active_command(
@@ -121,10 +125,6 @@ class ScriptedController:
         if target is None:
             return self._velocity_toward(positions[active], self.homes[active])
         return self._velocity_toward(positions[active], target)
-
-    @staticmethod
-    def _action_slice(arm: int) -> slice:
-        return slice((arm - 1) * ACTION_PER_ARM, arm * ACTION_PER_ARM)
 
     def predict(
         self, observation: np.ndarray, state: Any = None, episode_start: Any = None, deterministic: bool = True

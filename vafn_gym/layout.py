@@ -77,8 +77,7 @@ class ArmLayout:
 
     def action_slice(self, arm: int) -> slice:
         """Slice of the joint action that belongs to ``arm``."""
-        start = (arm - 1) * ACTION_PER_ARM
-        return slice(start, start + ACTION_PER_ARM)
+        return self.block_slice(arm, ACTION_PER_ARM)
 
     @staticmethod
     def block_slice(arm: int, per_arm: int) -> slice:

@@ -23,6 +23,29 @@ INACTIVE_ARM_MODES = ("hold", "policy")
 REWARD_TYPES = ("dense", "sparse")
 
 
+def resolve_targets(
+    instruction: Instruction, targets: str, layout: ArmLayout, rng: np.random.Generator
+) -> Instruction:
+    """``instruction`` with an explicit target on every waypoint; explicit targets are kept.
+
+    :param targets: "default" (the layout's point of each arm), "per_arm" (one point drawn from the shared region per
+        arm, reused on every visit) or "per_waypoint" (one drawn per waypoint). Draws are made in waypoint order.
+    """
+    drawn: dict[int, np.ndarray] = {}
+    waypoints = []
+    for waypoint in instruction:
+        if waypoint.target is not None:
+            target = np.asarray(waypoint.target)
+        elif targets == "default":
+            target = layout.default_target(waypoint.arm)
+        else:
+            if targets == "per_waypoint" or waypoint.arm not in drawn:
+                drawn[waypoint.arm] = layout.sample_shared_target(rng)
+            target = drawn[waypoint.arm]
+        waypoints.append(Waypoint(waypoint.arm, tuple(float(x) for x in target)))
+    return Instruction(waypoints)
+
+
 @dataclass(frozen=True)
 class RewardConfig:
     """Weights of the dense reward (every field is an env kwarg through ``reward_kwargs=dict(...)``).
@@ -95,19 +118,7 @@ class InstructionTask:
     def resolve(self, instruction: Instruction, rng: np.random.Generator) -> Instruction:
         """``instruction`` with every target explicit (waypoints that name an arm only get one by ``targets``)."""
         instruction.check_arms(self.layout.n_arms)
-        per_arm: dict[int, np.ndarray] = {}
-        waypoints = []
-        for waypoint in instruction:
-            if waypoint.target is not None:
-                target = np.asarray(waypoint.target)
-            elif self.targets == "default":
-                target = self.layout.default_target(waypoint.arm)
-            else:
-                if self.targets == "per_waypoint" or waypoint.arm not in per_arm:
-                    per_arm[waypoint.arm] = self.layout.sample_shared_target(rng)
-                target = per_arm[waypoint.arm]
-            waypoints.append(Waypoint(waypoint.arm, tuple(float(x) for x in target)))
-        return Instruction(waypoints)
+        return resolve_targets(instruction, self.targets, self.layout, rng)
 
     # --- state ---
     def start(self, instruction: Instruction) -> None:

@@ -10,7 +10,7 @@ import numpy as np
 from vafn_gym.constants import MAX_INSTRUCTION_LENGTH
 from vafn_gym.instructions import Instruction
 from vafn_gym.layout import ArmLayout
-from vafn_gym.task import TARGET_MODES
+from vafn_gym.task import TARGET_MODES, resolve_targets
 
 SPLITS = ("train", "validation", "test")
 Split = Literal["train", "validation", "test"]
@@ -139,14 +139,10 @@ class TaskSampler:
             order = self._random_order(length, rng)
             while self.split_of(order) != self.split:
                 order = self._random_order(length, rng)
+        instruction = Instruction.from_arms(order, n_arms=self.n_arms)
         if self.targets == "default":
-            return Instruction.from_arms(order, n_arms=self.n_arms)
-        targets, per_arm = [], {}
-        for arm in order:
-            if self.targets == "per_waypoint" or arm not in per_arm:
-                per_arm[arm] = self.layout.sample_shared_target(rng)
-            targets.append(per_arm[arm])
-        return Instruction.from_arms(order, targets, n_arms=self.n_arms)
+            return instruction  # arm-only waypoints: the env uses each arm's default point
+        return resolve_targets(instruction, self.targets, self.layout, rng)
 
     def sample_tasks(self, n: int) -> list[Instruction]:
         """``n`` independent instructions (a meta-batch)."""

@@ -122,8 +122,9 @@ def run(
 def evaluate_held_out(policy: Any, env_id: str, env_kwargs: dict, n_test: int) -> list[dict[str, Any]]:
     """Score ``policy`` once on each of ``n_test`` held-out test instructions (lengths 1-10) and print the rates."""
     rows = vafn_gym.InstructionBenchmark(env_id, n_test=n_test, env_kwargs=env_kwargs).evaluate(policy)
-    success, collision = np.mean([r["success"] for r in rows]), np.mean([r["collision"] for r in rows])
-    print(f"{env_id}: success {success:.3f}, collision rate {collision:.3f} on {len(rows)} held-out instructions")
+    rates = vafn_gym.episode_rates(rows)
+    print(f"{env_id}: success {rates['success']:.3f}, collision rate {rates['collision']:.3f} "
+          f"on {len(rows)} held-out instructions")
     return rows
 
 

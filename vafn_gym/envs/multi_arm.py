@@ -253,7 +253,9 @@ class MultiArmEnv(gym.Env):
         for arm in self.arms.values():
             arm.reset()
         self._begin_episode(instruction)
-        return self.observe(), self._info(self.task.distances(self._positions()), contact=False)
+        positions = self._positions()
+        distances = self.task.distances(positions)
+        return self._observation(positions, distances), self._info(distances, contact=False)
 
     def _begin_episode(self, instruction: Instruction | None) -> None:
         """Start the episode's instruction: the option's, the fixed task's or a sampled one."""

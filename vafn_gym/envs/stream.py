@@ -102,8 +102,8 @@ class MultiArmStreamEnv(MultiArmEnv):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         """Home the arms and start holding; the info carries the stream's state."""
         self._reset_seed = seed
-        obs, _ = super().reset(seed=seed, options=options)
-        return obs, self._stream_info(self.task.distances(self._positions()), False, [])
+        obs, info = super().reset(seed=seed, options=options)
+        return obs, {**info, **self._stream_fields([])}
 
     def _hold(self) -> None:
         self.current = None
@@ -176,17 +176,16 @@ class MultiArmStreamEnv(MultiArmEnv):
         terminated = bool(contact and self.terminate_on_collision)
         truncated = not terminated and self.total_steps >= self.horizon
         distances = self.task.distances(positions)
-        info = self._stream_info(distances, contact, events)
+        info = {**self._info(distances, contact), **self._stream_fields(events)}
         return self._observation(positions, distances), reward, terminated, truncated, info
 
-    def _stream_info(self, distances: np.ndarray, contact: bool, events: list[dict]) -> dict[str, Any]:
-        info = self._info(distances, contact)
-        info.update(
-            is_success=all(r["success"] for r in self.records),
-            holding=self.holding,
-            queue_length=len(self.queue),
-            instruction_sequence=None if self.current is None else self.current.sequence,
-            finished=events,
-            total_steps=self.total_steps,
-        )
-        return info
+    def _stream_fields(self, events: list[dict]) -> dict[str, Any]:
+        """The stream's part of ``info`` (``is_success`` covers every finished instruction of the episode)."""
+        return {
+            "is_success": all(r["success"] for r in self.records),
+            "holding": self.holding,
+            "queue_length": len(self.queue),
+            "instruction_sequence": None if self.current is None else self.current.sequence,
+            "finished": events,
+            "total_steps": self.total_steps,
+        }

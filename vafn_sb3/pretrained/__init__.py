@@ -16,10 +16,6 @@ import gymnasium as gym
 PRETRAINED_DIR = Path(__file__).resolve().parent
 
 
-def _stem(algo: str, env_id: str) -> str:
-    return f"{algo}__{env_id.replace('/', '-')}"
-
-
 def available_pretrained() -> list[tuple[str, str]]:
     """Every shipped ``(algo, env_id)`` pair."""
     pairs = []
@@ -31,7 +27,7 @@ def available_pretrained() -> list[tuple[str, str]]:
 
 def pretrained_info(algo: str, env_id: str = "VAFN/ThreeArmReach-v1") -> dict[str, Any]:
     """The metadata of a shipped policy: training command, wall/CPU time, held-out evaluation."""
-    path = PRETRAINED_DIR / f"{_stem(algo, env_id)}.json"
+    path = pretrained_path(algo, env_id).with_suffix(".json")
     if not path.is_file():
         listing = ", ".join(f"{a} on {e}" for a, e in available_pretrained()) or "none"
         raise ValueError(f"no pretrained {algo!r} policy for {env_id!r}; available: {listing}")
@@ -48,9 +44,9 @@ def load_pretrained(algo: str, env_id: str = "VAFN/ThreeArmReach-v1", env: gym.E
     from vafn_sb3.common.serialization import load_weights
 
     pretrained_info(algo, env_id)  # the clear error for unknown pairs
-    return load_weights(PRETRAINED_DIR / f"{_stem(algo, env_id)}.zip", env=env)
+    return load_weights(pretrained_path(algo, env_id), env=env)
 
 
 def pretrained_path(algo: str, env_id: str) -> Path:
     """Where the weights file of ``(algo, env_id)`` lives (or would live)."""
-    return PRETRAINED_DIR / f"{_stem(algo, env_id)}.zip"
+    return PRETRAINED_DIR / f"{algo}__{env_id.replace('/', '-')}.zip"
