@@ -3,7 +3,7 @@
 from setuptools import find_packages, setup
 
 EXTRAS = {
-    "dev": ["pytest>=7", "pytest-xdist>=3", "pytest-timeout>=2"],
+    "dev": ["pytest>=7", "pytest-xdist>=3", "pytest-timeout>=2", "hypothesis>=6.100"],
     # The speech synthesiser (espeakng-loader, GPL-3) is only used to generate training data; it is never vendored.
     "media": [
         "librosa>=0.10", "soundfile>=0.12", "opencv-python-headless>=4.8", "scikit-learn>=1.3", "soxr>=0.3",
