@@ -1,4 +1,5 @@
-"""Installs the ``vafn`` distribution: ``vafn_gym`` (environments, instructions, queue, media) and ``vafn_sb3``."""
+"""Installs the ``vafn`` distribution: ``vafn_gym`` (environments, instructions, queue), ``vafn_sb3`` and
+``vafn_media`` (speech / image / code -> Instruction; its dependencies are the ``[media]`` extra)."""
 
 from setuptools import find_packages, setup
 
@@ -24,9 +25,9 @@ setup(
     description="VA-FastNavi-MARL: multimedia-driven meta-reinforcement learning for three PyBullet arms",
     long_description=open("README.md", encoding="utf-8").read(),
     long_description_content_type="text/markdown",
-    packages=find_packages(include=["vafn_gym", "vafn_gym.*", "vafn_sb3", "vafn_sb3.*"]),
+    packages=find_packages(include=["vafn_gym", "vafn_gym.*", "vafn_sb3", "vafn_sb3.*", "vafn_media", "vafn_media.*"]),
     package_data={
-        "vafn_gym": ["multimedia/checkpoints/*.pt", "multimedia/checkpoints/*.json"],
+        "vafn_media": ["checkpoints/*.pt", "checkpoints/*.json"],
         "vafn_sb3": ["pretrained/*.zip", "pretrained/*.json"],
     },
     python_requires=">=3.10",
@@ -41,5 +42,5 @@ setup(
         "matplotlib>=3.7",
     ],
     extras_require=EXTRAS,
-    entry_points={"console_scripts": ["vafn-instruct=vafn_gym.multimedia.cli:main"]},
+    entry_points={"console_scripts": ["vafn-instruct=vafn_media.cli:main"]},
 )

@@ -25,7 +25,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from vafn_gym.constants import DIFFICULTY_LENGTHS  # noqa: E402
-from vafn_gym.multimedia.evaluation import PAPER_ACCURACY, PAPER_LATENCY_S, ROWS, run_cell  # noqa: E402
+from vafn_media.evaluation import PAPER_ACCURACY, PAPER_LATENCY_S, ROWS, run_cell  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 #: Seeds of the evaluation items are offset from the training seed range.
@@ -53,7 +53,7 @@ def evaluate_split(generator, split: str, seeds: int, items: int, workers: int, 
     """Run every row x difficulty cell of one split; returns {(row, difficulty): [CellResult per seed]}."""
     from tqdm import tqdm
 
-    from vafn_gym.multimedia.dataset import generate_raw
+    from vafn_media.dataset import generate_raw
 
     cells: dict = {}
     jobs = [(s, d) for s in range(seeds) for d in DIFFICULTY_LENGTHS]
@@ -80,11 +80,11 @@ def cross_modal_probe(generator, items: int, heldout_items) -> dict:
     import torch
     import torch.nn.functional as F
 
-    from vafn_gym.multimedia.batching import make_batch
-    from vafn_gym.multimedia.constants import BLANK, VOCAB_SIZE
-    from vafn_gym.multimedia.dataset import build_cache
-    from vafn_gym.multimedia.decoding import greedy_decode
-    from vafn_gym.multimedia.images import canonical_strip
+    from vafn_media.batching import make_batch
+    from vafn_media.constants import BLANK, VOCAB_SIZE
+    from vafn_media.dataset import build_cache
+    from vafn_media.decoding import greedy_decode
+    from vafn_media.images import canonical_strip
 
     model = generator.model
     train = build_cache(0, "train", items, progress=False)
@@ -131,8 +131,8 @@ def main() -> None:
     """Run the benchmark, print the tables, write markdown and CSV."""
     import torch
 
-    from vafn_gym.multimedia.dataset import generate_raw
-    from vafn_gym.multimedia.generator import InstructionGenerator
+    from vafn_media.dataset import generate_raw
+    from vafn_media.generator import InstructionGenerator
 
     args = parse_args()
     torch.set_num_threads(1)

@@ -1,4 +1,4 @@
-"""Tests of the multimedia instruction generator (vafn_gym.multimedia), using the packaged checkpoint."""
+"""Tests of the multimedia instruction generator (vafn_media), using the packaged checkpoint."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ pytest.importorskip("cv2")
 soundfile = pytest.importorskip("soundfile")
 
 from vafn_gym.instructions import Instruction  # noqa: E402
-from vafn_gym.multimedia.constants import IMAGE_HEIGHT, LATENT_DIM, N_MELS, VOCAB_SIZE  # noqa: E402
+from vafn_media.constants import IMAGE_HEIGHT, LATENT_DIM, N_MELS, VOCAB_SIZE  # noqa: E402
 
 torch.set_num_threads(1)
 HAVE_ESPEAK = True
@@ -36,7 +36,7 @@ VISUAL_FLOOR = 85.0
 
 @pytest.fixture(scope="module")
 def generator():
-    from vafn_gym.multimedia import InstructionGenerator
+    from vafn_media import InstructionGenerator
 
     return InstructionGenerator.load()
 
@@ -44,7 +44,7 @@ def generator():
 @pytest.fixture(scope="module")
 def heldout():
     """Held-out items per difficulty (fresh processes: bit-identical audio on every run)."""
-    from vafn_gym.multimedia.dataset import generate_raw
+    from vafn_media.dataset import generate_raw
 
     if not HAVE_ESPEAK:
         pytest.skip("needs espeakng-loader")
@@ -64,7 +64,7 @@ def test_import_is_light():
     import sys
 
     code = (
-        "import sys, vafn_gym.multimedia; "
+        "import sys, vafn_media; "
         "print(any(m in sys.modules for m in ('librosa', 'cv2', 'espeakng_loader')))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
@@ -73,8 +73,8 @@ def test_import_is_light():
 
 # --- data generation ---------------------------------------------------------------------------------------------
 def test_item_specs_and_images_are_deterministic():
-    from vafn_gym.multimedia.dataset import item_spec
-    from vafn_gym.multimedia.strips import render_strip
+    from vafn_media.dataset import item_spec
+    from vafn_media.strips import render_strip
 
     assert item_spec(3, "train", 7) == item_spec(3, "train", 7)
     assert item_spec(3, "train", 7) != item_spec(4, "train", 7)
@@ -87,9 +87,9 @@ def test_item_specs_and_images_are_deterministic():
 
 
 def test_heldout_split_uses_unseen_voices_and_glyphs():
-    from vafn_gym.multimedia.dataset import item_spec
-    from vafn_gym.multimedia.speech import HELDOUT_VARIANTS, HELDOUT_VOICES, TRAIN_VARIANTS, TRAIN_VOICES
-    from vafn_gym.multimedia.strips import HELDOUT_FONTS, TRAIN_FONTS, handwritten_pool
+    from vafn_media.dataset import item_spec
+    from vafn_media.speech import HELDOUT_VARIANTS, HELDOUT_VOICES, TRAIN_VARIANTS, TRAIN_VOICES
+    from vafn_media.strips import HELDOUT_FONTS, TRAIN_FONTS, handwritten_pool
 
     assert not set(HELDOUT_VOICES) & set(TRAIN_VOICES) and not set(HELDOUT_VARIANTS) & set(TRAIN_VARIANTS)
     assert not set(HELDOUT_FONTS) & set(TRAIN_FONTS)
@@ -104,7 +104,7 @@ def test_heldout_split_uses_unseen_voices_and_glyphs():
 
 @needs_espeak
 def test_audio_generation_is_reproducible_in_fresh_processes():
-    from vafn_gym.multimedia.dataset import generate_raw
+    from vafn_media.dataset import generate_raw
 
     first = generate_raw(7, "train", 4)
     second = generate_raw(7, "train", 4)
@@ -117,7 +117,7 @@ def test_audio_generation_is_reproducible_in_fresh_processes():
 # --- features ----------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("rate", [16_000, 22_050, 44_100])
 def test_log_mel_shape_and_frame_rate(rate):
-    from vafn_gym.multimedia.features import frame_params, log_mel, num_frames
+    from vafn_media.features import frame_params, log_mel, num_frames
 
     seconds = 1.3
     wave = np.random.default_rng(0).normal(0, 0.1, int(seconds * rate)).astype(np.float32)
@@ -129,8 +129,8 @@ def test_log_mel_shape_and_frame_rate(rate):
 
 
 def test_canonical_strip_normalises_polarity_and_size():
-    from vafn_gym.multimedia.images import canonical_strip
-    from vafn_gym.multimedia.strips import render_strip
+    from vafn_media.images import canonical_strip
+    from vafn_media.strips import render_strip
 
     image = render_strip([1, 2, 3], np.random.default_rng(1))
     light_on_dark = canonical_strip(image)
@@ -146,7 +146,7 @@ def test_canonical_strip_normalises_polarity_and_size():
 
 # --- model and decoding ------------------------------------------------------------------------------------------
 def test_model_forward_shapes():
-    from vafn_gym.multimedia.model import InstructionModel
+    from vafn_media.model import InstructionModel
 
     model = InstructionModel().eval()
     with torch.inference_mode():
@@ -173,7 +173,7 @@ def _logits(path):
     ([k % 3 + 1 if i % 2 else 0 for i, k in enumerate(range(21))], [k % 3 + 1 for k in range(1, 21, 2)]),
 ])
 def test_greedy_decode_variable_lengths(path, arms):
-    from vafn_gym.multimedia.decoding import greedy_decode
+    from vafn_media.decoding import greedy_decode
 
     decoded = greedy_decode(torch.randn(len(path), LATENT_DIM), _logits(path))
     assert decoded.arms == arms
@@ -182,7 +182,7 @@ def test_greedy_decode_variable_lengths(path, arms):
 
 
 def test_fusion_prefers_the_confident_modality():
-    from vafn_gym.multimedia.decoding import fuse, greedy_decode
+    from vafn_media.decoding import fuse, greedy_decode
 
     sure = greedy_decode(torch.randn(8, LATENT_DIM), _logits([0, 2, 0, 3, 0, 1, 0, 0]))
     unsure_logits = _logits([0, 2, 0, 0, 0, 1, 0, 0]) * 0.1  # misses a token, and is unsure everywhere
@@ -193,11 +193,11 @@ def test_fusion_prefers_the_confident_modality():
 
 # --- the packaged generator ----------------------------------------------------------------------------------------
 def test_packaged_checkpoint_is_small_and_documented():
-    from vafn_gym.multimedia.generator import DEFAULT_CHECKPOINT
+    from vafn_media.generator import DEFAULT_CHECKPOINT
 
     assert DEFAULT_CHECKPOINT.stat().st_size < 4 * 2**20
     metadata = json.loads(DEFAULT_CHECKPOINT.with_suffix(".json").read_text())
-    assert metadata["command"].startswith("python -m vafn_gym.multimedia.train")
+    assert metadata["command"].startswith("python -m vafn_media.train")
     assert metadata["validation"], "the training run must record validation accuracy"
 
 
@@ -237,7 +237,7 @@ def test_audio_of_any_sample_rate_and_files(generator, sample, tmp_path):
 @needs_espeak
 def test_accuracy_on_fresh_heldout_items_beats_the_paper(generator, heldout):
     """Deterministic fresh held-out sample (unseen voices, handwriting, fonts); fails if the model regresses."""
-    from vafn_gym.multimedia.evaluation import PAPER_ACCURACY, run_cell
+    from vafn_media.evaluation import PAPER_ACCURACY, run_cell
 
     for k, difficulty in enumerate(("easy", "medium", "hard")):
         items = heldout[difficulty]
@@ -254,7 +254,7 @@ def test_accuracy_on_fresh_heldout_items_beats_the_paper(generator, heldout):
 def test_cli_on_generated_wav_and_png(sample, tmp_path, capsys):
     import cv2
 
-    from vafn_gym.multimedia.cli import main
+    from vafn_media.cli import main
 
     arms, wave, rate, image = sample
     wav, png = tmp_path / "cmd.wav", tmp_path / "card.png"
@@ -337,7 +337,7 @@ def test_bad_images_raise_a_clear_error(generator, image, message):
 def test_corrupt_and_truncated_image_files(generator, tmp_path):
     import cv2
 
-    from vafn_gym.multimedia.strips import render_strip
+    from vafn_media.strips import render_strip
 
     good = tmp_path / "card.png"
     cv2.imwrite(str(good), render_strip([1, 2], np.random.default_rng(0)))
@@ -364,7 +364,7 @@ def test_one_corrupted_modality_is_dropped_not_fatal(generator, sample):
 @needs_espeak
 def test_stream_enqueues_results_and_survives_bad_input(generator, sample):
     queue_module = pytest.importorskip("vafn_gym.queue")
-    from vafn_gym.multimedia import MultimediaStream
+    from vafn_media import MultimediaStream
 
     arms, wave, rate, image = sample
     queue = queue_module.InstructionQueue(capacity=3)
@@ -392,8 +392,8 @@ def test_stream_enqueues_results_and_survives_bad_input(generator, sample):
 
 def test_stream_rejects_low_confidence_and_survives_a_crashing_generator():
     queue_module = pytest.importorskip("vafn_gym.queue")
-    from vafn_gym.multimedia import MultimediaStream
-    from vafn_gym.multimedia.generator import Transcription
+    from vafn_media import MultimediaStream
+    from vafn_media.generator import Transcription
 
     class Flaky:
         def __init__(self):
@@ -416,7 +416,7 @@ def test_stream_rejects_low_confidence_and_survives_a_crashing_generator():
 
 
 def test_batchnorm_folding_keeps_outputs():
-    from vafn_gym.multimedia.model import InstructionModel, fold_batchnorm
+    from vafn_media.model import InstructionModel, fold_batchnorm
 
     torch.manual_seed(0)
     model = InstructionModel()
@@ -436,3 +436,20 @@ def test_batchnorm_folding_keeps_outputs():
             b, _ = folded.encode(modality, x, torch.tensor([n]))
             assert torch.allclose(a, b, atol=1e-4)
     assert not any(isinstance(m, torch.nn.modules.batchnorm._BatchNorm) for m in folded.modules())
+
+
+def test_package_boundary_vafn_gym_never_imports_vafn_media():
+    """vafn_media depends on vafn_gym, never the reverse: importing every vafn_gym module leaves vafn_media unloaded."""
+    import subprocess
+    import sys
+
+    code = (
+        "import pkgutil, importlib, sys, vafn_gym\n"
+        "for m in pkgutil.walk_packages(vafn_gym.__path__, 'vafn_gym.'):\n"
+        "    importlib.import_module(m.name)\n"
+        "assert not hasattr(vafn_gym, 'InstructionGenerator'), 'vafn_gym still re-exports the media reader'\n"
+        "bad = sorted(n for n in sys.modules if n.startswith('vafn_media') or n == 'vafn_gym.multimedia')\n"
+        "assert not bad, bad\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]

@@ -680,7 +680,7 @@ class _CodeGenerator:
 
 
 def test_stream_stop_and_wait_return_at_once_when_never_started():
-    from vafn_gym.multimedia.stream import MultimediaStream
+    from vafn_media.stream import MultimediaStream
 
     stream = MultimediaStream(InstructionQueue(), _CodeGenerator())
     assert stream.wait() is True  # nothing pending
@@ -695,7 +695,7 @@ def test_stream_stop_and_wait_return_at_once_when_never_started():
 
 @pytest.mark.parametrize("fatal", [SystemExit, KeyboardInterrupt, RuntimeError])
 def test_stream_worker_survives_callbacks_and_generators_raising_anything(fatal):
-    from vafn_gym.multimedia.stream import MultimediaStream
+    from vafn_media.stream import MultimediaStream
 
     def callback(event):
         if event.ticket == 0:

@@ -39,18 +39,6 @@ for _env_id, (_entry_point, _kwargs) in _REGISTRY.items():
     register(id=_env_id, entry_point=_entry_point, kwargs=_kwargs)
     ENV_IDS.append(_env_id)
 
-#: Names served lazily from vafn_gym.multimedia, so that ``import vafn_gym`` never imports torch, librosa or OpenCV.
-_MULTIMEDIA_NAMES = ("InstructionGenerator", "MultimediaStream", "Transcription")
-
-
-def __getattr__(name: str):
-    if name in _MULTIMEDIA_NAMES:
-        from vafn_gym import multimedia
-
-        return getattr(multimedia, name)
-    raise AttributeError(f"module 'vafn_gym' has no attribute {name!r}")
-
-
 __all__ = [
     "ENV_IDS",
     "INACTIVE_ARM_MODES",
@@ -64,12 +52,10 @@ __all__ = [
     "ArrivalProcess",
     "Instruction",
     "InstructionBenchmark",
-    "InstructionGenerator",
     "InstructionQueue",
     "InstructionTask",
     "MultiArmEnv",
     "MultiArmStreamEnv",
-    "MultimediaStream",
     "PoissonArrivals",
     "QueueFullError",
     "QueuedInstruction",
@@ -78,7 +64,6 @@ __all__ = [
     "ScheduledArrivals",
     "ScriptedController",
     "TaskSampler",
-    "Transcription",
     "Waypoint",
     "difficulty_of",
     "episode_rates",

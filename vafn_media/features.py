@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from vafn_gym.multimedia.constants import F_MAX, F_MIN, HOP_SECONDS, LOG_EPS, N_MELS, WIN_SECONDS
+from vafn_media.constants import F_MAX, F_MIN, HOP_SECONDS, LOG_EPS, N_MELS, WIN_SECONDS
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch

@@ -1,7 +1,7 @@
 """Calibration of the fusion's modality reliability weights on in-distribution validation data (never the test set).
 
 Run by the training command after training; also usable on an existing checkpoint:
-``python -m vafn_gym.multimedia.calibration [--checkpoint PATH]`` (updates the checkpoint's JSON metadata).
+``python -m vafn_media.calibration [--checkpoint PATH]`` (updates the checkpoint's JSON metadata).
 """
 
 from __future__ import annotations
@@ -24,14 +24,14 @@ def readings_of(model, data, corrupted: bool, batch_size: int = 64) -> dict[str,
     """Greedy readings of every cached item per modality (``corrupted``: noisy audio + Cutout strips).
 
     :param model: the network.
-    :param data: cached items (:class:`~vafn_gym.multimedia.dataset.TrainingData`).
+    :param data: cached items (:class:`~vafn_media.dataset.TrainingData`).
     :param corrupted: use the noisy/Cutout copies instead of the clean ones.
     :param batch_size: batch size of the encoders.
     """
     import torch
 
-    from vafn_gym.multimedia.batching import make_batch
-    from vafn_gym.multimedia.decoding import greedy_decode
+    from vafn_media.batching import make_batch
+    from vafn_media.decoding import greedy_decode
 
     out: dict[str, list] = {"audio": [], "image": []}
     with torch.inference_mode():
@@ -55,7 +55,7 @@ def calibrate_fusion(model, data, grid: Sequence[float] = IMAGE_WEIGHT_GRID) -> 
     """
     import torch
 
-    from vafn_gym.multimedia.decoding import fuse
+    from vafn_media.decoding import fuse
 
     labels = [tuple(data.arms[i, : data.lengths[i]].tolist()) for i in range(len(data))]
     pairs = [readings_of(model, data, corrupted=False), readings_of(model, data, corrupted=True)]
@@ -81,8 +81,8 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     import torch
 
-    from vafn_gym.multimedia.dataset import DEFAULT_CACHE, build_cache
-    from vafn_gym.multimedia.generator import DEFAULT_CHECKPOINT, InstructionGenerator
+    from vafn_media.dataset import DEFAULT_CACHE, build_cache
+    from vafn_media.generator import DEFAULT_CHECKPOINT, InstructionGenerator
 
     torch.set_num_threads(1)
     path = args.checkpoint or DEFAULT_CHECKPOINT

@@ -8,9 +8,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from vafn_gym.multimedia.constants import NOISE_SNR_DB
-from vafn_gym.multimedia.corruptions import add_awgn, cutout
-from vafn_gym.multimedia.dataset import RawItems
+from vafn_media.constants import NOISE_SNR_DB
+from vafn_media.corruptions import add_awgn, cutout
+from vafn_media.dataset import RawItems
 
 #: Table-1 rows: name -> (use audio, audio noisy, use image, image Cutout, use code).
 ROWS: dict[str, tuple[bool, bool, bool, bool, bool]] = {

@@ -18,10 +18,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from vafn_gym.constants import DIFFICULTY_LENGTHS
-from vafn_gym.multimedia.constants import MAX_INSTRUCTION_LENGTH, NUM_ARMS, SAMPLE_RATE
+from vafn_media.constants import MAX_INSTRUCTION_LENGTH, NUM_ARMS, SAMPLE_RATE
 
 if TYPE_CHECKING:  # pragma: no cover
-    from vafn_gym.multimedia.speech import Voice
+    from vafn_media.speech import Voice
 
 #: Splits: training voices/glyphs; fresh items of the same voices/glyphs; held-out voices, variants and glyphs.
 SPLIT_CODES: dict[str, int] = {"train": 0, "test": 1, "heldout": 2}
@@ -55,7 +55,7 @@ def item_spec(seed: int, split: str, index: int, difficulty: str | None = None) 
     :param index: item index.
     :param difficulty: restrict the length to a paper bucket ("easy", "medium", "hard"); None = uniform 0..10.
     """
-    from vafn_gym.multimedia.speech import EMPTY_PHRASES, TEMPLATES, sample_voice
+    from vafn_media.speech import EMPTY_PHRASES, TEMPLATES, sample_voice
 
     if split not in SPLIT_CODES:
         raise ValueError(f"unknown split {split!r}; choose from {list(SPLIT_CODES)}")
@@ -75,8 +75,8 @@ def render_item(spec: ItemSpec) -> tuple[np.ndarray, np.ndarray]:
 
     :param spec: the item specification.
     """
-    from vafn_gym.multimedia.speech import speak
-    from vafn_gym.multimedia.strips import render_strip
+    from vafn_media.speech import speak
+    from vafn_media.strips import render_strip
 
     waveform = speak(spec.arms, spec.voice, spec.template, spec.empty_phrase)
     image = render_strip(spec.arms, np.random.default_rng(spec.image_seed), heldout=spec.heldout)
@@ -95,7 +95,7 @@ class RawItems:
 
 
 def _render_range(args: tuple[int, str, int, int, str | None]) -> RawItems:
-    from vafn_gym.multimedia.speech import ESPEAK_SAMPLE_RATE
+    from vafn_media.speech import ESPEAK_SAMPLE_RATE
 
     seed, split, start, count, difficulty = args
     specs = [item_spec(seed, split, i, difficulty) for i in range(start, start + count)]
@@ -140,9 +140,9 @@ def _compact_shard(args: tuple[int, str, int, int, str]) -> str:
     import soxr
     import torch
 
-    from vafn_gym.multimedia.corruptions import add_awgn, cutout
-    from vafn_gym.multimedia.features import log_mel
-    from vafn_gym.multimedia.images import canonical_strip
+    from vafn_media.corruptions import add_awgn, cutout
+    from vafn_media.features import log_mel
+    from vafn_media.images import canonical_strip
 
     torch.set_num_threads(1)
     seed, split, start, count, path = args

@@ -2,7 +2,7 @@
 
 Public API (torch, librosa and OpenCV are imported lazily, on first use)::
 
-    from vafn_gym.multimedia import InstructionGenerator, MultimediaStream
+    from vafn_media import InstructionGenerator, MultimediaStream
     generator = InstructionGenerator.load()            # the packaged checkpoint
     result = generator.transcribe(audio="cmd.wav", image="card.png")
     result.instruction, result.confidences, result.low_confidence
@@ -43,10 +43,10 @@ _LOCATIONS = {
 
 
 def __getattr__(name: str) -> Any:
-    """Import public names lazily so ``import vafn_gym.multimedia`` stays cheap."""
+    """Import public names lazily so ``import vafn_media`` stays cheap."""
     if name in _LOCATIONS:
         import importlib
 
-        module = importlib.import_module(f"vafn_gym.multimedia.{_LOCATIONS[name]}")
+        module = importlib.import_module(f"vafn_media.{_LOCATIONS[name]}")
         return getattr(module, name)
-    raise AttributeError(f"module 'vafn_gym.multimedia' has no attribute {name!r}")
+    raise AttributeError(f"module 'vafn_media' has no attribute {name!r}")

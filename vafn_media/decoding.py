@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from vafn_gym.multimedia.constants import BLANK
+from vafn_media.constants import BLANK
 
 
 @dataclass

@@ -7,8 +7,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from vafn_gym.multimedia.constants import IMAGE_HEIGHT, MAX_IMAGE_WIDTH, MIN_IMAGE_WIDTH
-from vafn_gym.multimedia.dataset import INK_LEVELS, TrainingData
+from vafn_media.constants import IMAGE_HEIGHT, MAX_IMAGE_WIDTH, MIN_IMAGE_WIDTH
+from vafn_media.dataset import INK_LEVELS, TrainingData
 
 #: Augmentation settings (training only).
 NOISE_PROBABILITY: float = 0.5

@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
-from vafn_gym.multimedia.constants import ENCODER_STRIDE, IMAGE_HEIGHT, LATENT_DIM, N_MELS, VOCAB_SIZE
+from vafn_media.constants import ENCODER_STRIDE, IMAGE_HEIGHT, LATENT_DIM, N_MELS, VOCAB_SIZE
 
 MODALITIES: tuple[str, ...] = ("audio", "image")
 

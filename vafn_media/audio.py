@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vafn_gym.multimedia.constants import (
+from vafn_media.constants import (
     CLIP_FRACTION,
     CLIP_LEVEL,
     MAX_AUDIO_SECONDS,

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from collections.abc import Callable
 from typing import Any
 
-from vafn_gym.multimedia.constants import LOW_CONFIDENCE
+from vafn_media.constants import LOW_CONFIDENCE
 
 #: How long the worker waits for a request before re-checking for shutdown (seconds).
 _POLL_SECONDS = 0.05
@@ -82,7 +82,7 @@ class MultimediaStream:
         max_pending: int = 256,
     ) -> None:
         if generator is None:
-            from vafn_gym.multimedia.generator import InstructionGenerator
+            from vafn_media.generator import InstructionGenerator
 
             generator = InstructionGenerator.load()
         self.queue = instruction_queue

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from vafn_gym.multimedia.constants import CUTOUT_FRACTION
+from vafn_media.constants import CUTOUT_FRACTION
 
 
 def add_awgn(waveform: np.ndarray, snr_db: float, rng: np.random.Generator) -> np.ndarray:

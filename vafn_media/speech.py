@@ -3,7 +3,7 @@
 This is the only module that touches espeak-ng (GPL-3.0-or-later). It is used to *generate training and test data*
 only; nothing of espeak is vendored, and the trained model and inference path never import it.
 The library keeps internal state, so repeated calls in one process are not bit-identical: run each fixed-size shard
-of a dataset in a fresh process (see :mod:`vafn_gym.multimedia.dataset`) to make generation reproducible.
+of a dataset in a fresh process (see :mod:`vafn_media.dataset`) to make generation reproducible.
 """
 
 from __future__ import annotations

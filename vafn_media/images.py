@@ -9,7 +9,7 @@ import os
 
 import numpy as np
 
-from vafn_gym.multimedia.constants import (
+from vafn_media.constants import (
     BLANK_IMAGE_STD,
     CONTENT_MARGIN,
     CONTENT_THRESHOLD,

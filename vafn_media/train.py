@@ -1,4 +1,4 @@
-"""Training command of the packaged model: ``python -m vafn_gym.multimedia.train`` (CPU, one thread, ~15 min).
+"""Training command of the packaged model: ``python -m vafn_media.train`` (CPU, one thread, ~15 min).
 
 Generates (or reuses) the seeded training data, then trains both encoders, the shared projection and the shared CTC
 decoder jointly with: CTC on audio Φ, CTC on image Φ, a token-level InfoNCE alignment between the audio and image
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from vafn_gym.files import atomic_write
-from vafn_gym.multimedia.constants import BLANK
+from vafn_media.constants import BLANK
 
 #: Default paths of the packaged checkpoint (weights + JSON metadata).
 CHECKPOINT_DIR = Path(__file__).parent / "checkpoints"
@@ -26,7 +26,7 @@ CHECKPOINT_NAME = "instruction_model"
 
 def _greedy_paths(logits, lengths) -> tuple[list[list[int]], list[list[int]]]:
     """Best-path CTC reading of a batch: each item's arm ids and the frame index of each token's most probable frame."""
-    from vafn_gym.multimedia.decoding import path_segments
+    from vafn_media.decoding import path_segments
 
     logits = logits.detach()
     best, probs = logits.argmax(-1).numpy(), logits.softmax(-1).numpy()
@@ -84,7 +84,7 @@ def evaluate(model, data, batch_size: int = 64) -> dict[str, float]:
     """
     import torch
 
-    from vafn_gym.multimedia.batching import make_batch
+    from vafn_media.batching import make_batch
 
     model.eval()
     correct = {"audio": 0, "image": 0}
@@ -159,10 +159,10 @@ def main(argv=None) -> dict:
     import torch.nn.functional as F
     from tqdm import tqdm
 
-    from vafn_gym.multimedia.batching import bucketed_batches, make_batch
-    from vafn_gym.multimedia.calibration import calibrate_fusion
-    from vafn_gym.multimedia.dataset import DEFAULT_CACHE, build_cache
-    from vafn_gym.multimedia.model import InstructionModel, ModelConfig
+    from vafn_media.batching import bucketed_batches, make_batch
+    from vafn_media.calibration import calibrate_fusion
+    from vafn_media.dataset import DEFAULT_CACHE, build_cache
+    from vafn_media.model import InstructionModel, ModelConfig
 
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
@@ -226,7 +226,7 @@ def main(argv=None) -> dict:
     atomic_write(args.out / f"{CHECKPOINT_NAME}.pt", lambda tmp: torch.save(state, tmp))
     metadata = {
         "config": config.to_dict(),
-        "command": "python -m vafn_gym.multimedia.train "
+        "command": "python -m vafn_media.train "
         + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
         "args": {
             k: str(v) if isinstance(v, Path) else v

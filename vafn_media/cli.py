@@ -29,7 +29,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import torch
 
-    from vafn_gym.multimedia.generator import InstructionGenerator
+    from vafn_media.generator import InstructionGenerator
 
     torch.set_num_threads(1)
     try:

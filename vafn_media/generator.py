@@ -12,11 +12,11 @@ from typing import Any
 import numpy as np
 
 from vafn_gym.instructions import Instruction
-from vafn_gym.multimedia.audio import AudioSource, load_audio
-from vafn_gym.multimedia.constants import IMAGE_HEIGHT, LOW_CONFIDENCE, MAX_INSTRUCTION_LENGTH, NUM_ARMS, SAMPLE_RATE
-from vafn_gym.multimedia.images import ImageSource, canonical_strip
+from vafn_media.audio import AudioSource, load_audio
+from vafn_media.constants import IMAGE_HEIGHT, LOW_CONFIDENCE, MAX_INSTRUCTION_LENGTH, NUM_ARMS, SAMPLE_RATE
+from vafn_media.images import ImageSource, canonical_strip
 
-#: The packaged checkpoint (weights + metadata JSON), produced by ``python -m vafn_gym.multimedia.train``.
+#: The packaged checkpoint (weights + metadata JSON), produced by ``python -m vafn_media.train``.
 DEFAULT_CHECKPOINT = Path(__file__).parent / "checkpoints" / "instruction_model.pt"
 #: Sample rates whose mel filterbanks are built when a generator loads (the first librosa call is slow).
 WARM_SAMPLE_RATES: tuple[int, ...] = (SAMPLE_RATE, 22_050, 44_100, 48_000)
@@ -59,7 +59,7 @@ class Transcription:
 class InstructionGenerator:
     """Reads instructions from speech, digit-strip images and machine code with one trained model.
 
-    :param model: a trained :class:`~vafn_gym.multimedia.model.InstructionModel`.
+    :param model: a trained :class:`~vafn_media.model.InstructionModel`.
     :param metadata: the checkpoint's metadata (training command, validation history).
     :param low_confidence: threshold under which a result is flagged ``low_confidence``.
     """
@@ -83,12 +83,12 @@ class InstructionGenerator:
         """
         import torch
 
-        from vafn_gym.multimedia.model import InstructionModel, ModelConfig, fold_batchnorm
+        from vafn_media.model import InstructionModel, ModelConfig, fold_batchnorm
 
         checkpoint = Path(path) if path is not None else DEFAULT_CHECKPOINT
         if not checkpoint.is_file():
             raise FileNotFoundError(
-                f"no checkpoint at {checkpoint}; train one with `python -m vafn_gym.multimedia.train`"
+                f"no checkpoint at {checkpoint}; train one with `python -m vafn_media.train`"
             )
         meta_path = checkpoint.with_suffix(".json")
         metadata = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
@@ -101,7 +101,7 @@ class InstructionGenerator:
 
     def warm_up(self) -> None:
         """Build cached filterbanks, import the I/O libraries and run each path once so the first real call is fast."""
-        from vafn_gym.multimedia.features import mel_filterbank
+        from vafn_media.features import mel_filterbank
 
         for rate in WARM_SAMPLE_RATES:
             mel_filterbank(rate)
@@ -119,7 +119,7 @@ class InstructionGenerator:
         :param waveform: float32 samples.
         :param sample_rate: its rate in Hz.
         """
-        from vafn_gym.multimedia.features import log_mel
+        from vafn_media.features import log_mel
 
         torch = self._torch
         with torch.inference_mode():
@@ -143,7 +143,7 @@ class InstructionGenerator:
 
         :param phi: (T, LATENT_DIM) latent frames.
         """
-        from vafn_gym.multimedia.decoding import greedy_decode
+        from vafn_media.decoding import greedy_decode
 
         with self._torch.inference_mode():
             return greedy_decode(phi, self.model.decode(phi))
@@ -161,7 +161,7 @@ class InstructionGenerator:
         :param code: machine code (``"2,3,1"``, ``"[2, 3, 1]"``, JSON, a list of arm ids or an Instruction).
         :param sample_rate: sample rate of a bare ``audio`` waveform.
         """
-        from vafn_gym.multimedia.decoding import fuse
+        from vafn_media.decoding import fuse
 
         started = time.perf_counter()
         given = {

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from vafn_gym.multimedia.constants import MAX_INSTRUCTION_LENGTH, NUM_ARMS, PIXEL_NOISE_SIGMA
+from vafn_media.constants import MAX_INSTRUCTION_LENGTH, NUM_ARMS, PIXEL_NOISE_SIGMA
 
 #: OpenCV Hershey font ids (cv2.FONT_HERSHEY_*), split into training and held-out glyph sets.
 TRAIN_FONTS: tuple[int, ...] = (0, 1, 3, 4, 5, 6)  # SIMPLEX, PLAIN, COMPLEX, TRIPLEX, COMPLEX_SMALL, SCRIPT_SIMPLEX
