@@ -364,10 +364,12 @@ class MultiArmEnv(gym.Env):
         if self.render_mode != "rgb_array":
             return None
         width, height = self.render_size
-        distance = 1.1 + self.layout.base_radius
-        return self.sim.render(
-            width, height, target=np.array([0.0, 0.0, 0.3]), distance=distance, yaw=30.0, pitch=-30.0
-        )
+        return self.sim.render(width, height, **self.camera())
+
+    def camera(self) -> dict[str, Any]:
+        """The orbit camera of :meth:`render`: look-at ``target``, ``distance``, ``yaw`` and ``pitch`` (degrees)."""
+        return {"target": np.array([0.0, 0.0, 0.3]), "distance": 1.1 + self.layout.base_radius, "yaw": 30.0,
+                "pitch": -30.0}
 
     def close(self) -> None:
         """Release the physics client; safe to call twice."""
