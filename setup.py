@@ -42,5 +42,5 @@ setup(
         "matplotlib>=3.7",
     ],
     extras_require=EXTRAS,
-    entry_points={"console_scripts": ["vafn-instruct=vafn_media.cli:main"]},
+    entry_points={"console_scripts": ["vafn-instruct=vafn_media.cli:main", "vafn-demo=vafn_sb3.demo:main"]},
 )
