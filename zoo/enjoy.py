@@ -7,7 +7,8 @@
     python zoo/enjoy.py --scripted --env VAFN/ThreeArmReach-v1 --instruction 2,3,1,3 --record demo.mp4
 
 The model is found like ``python -m rl_zoo3.enjoy`` finds it (``-f/--exp-id/--load-best``); the env kwargs and
-VecNormalize statistics saved with the run are reused. Prints return, success and collision per episode. With
+VecNormalize statistics saved with the run are reused. Runs one episode (one instruction) by default; recorded frames
+carry the overlay of :mod:`vafn_gym.overlay`. Prints return, success and collision per episode. With
 ``--n-test N`` it instead scores the policy on the first N held-out test instructions of
 :class:`vafn_gym.InstructionBenchmark` (the protocol of every curve in the project).
 """
@@ -31,11 +32,9 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize  # noqa: 
 from tqdm import tqdm  # noqa: E402
 
 import vafn_gym  # noqa: E402
+from vafn_gym.overlay import VIDEO_SUFFIXES, FrameOverlay, VideoWriter  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 from zoo.run_config import load_run_config  # noqa: E402
-
-VIDEO_SUFFIXES = (".gif", ".mp4")
-
 
 def load_run(algo: str, env_id: str, folder: str, exp_id: int, load_best: bool) -> tuple[Any, dict, str | None]:
     """(model, env_kwargs, vecnormalize path or None) of a zoo run ``<folder>/<algo>/<EnvName>_<exp_id>``."""
@@ -54,68 +53,97 @@ def load_run(algo: str, env_id: str, folder: str, exp_id: int, load_best: bool) 
     return model, env_kwargs, str(stats) if stats.is_file() else None
 
 
-def write_video(frames: list[np.ndarray], path: Path, fps: int) -> Path:
-    """Save RGB frames as a GIF or an MP4 (by suffix)."""
-    import imageio.v2 as imageio
+class RecordingWrapper(gym.Wrapper):
+    """Renders every ``frame_skip``-th step (and every episode's first and last) with the overlay into ``writer``."""
 
-    if path.suffix not in VIDEO_SUFFIXES:
-        raise ValueError(f"--record must end in one of {VIDEO_SUFFIXES}, got {path}")
-    if not frames:
-        raise ValueError("no frames were rendered")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if path.suffix == ".gif":
-        imageio.mimsave(path, frames, duration=1000.0 / fps, loop=0)
-    else:
-        imageio.mimsave(path, frames, fps=fps, macro_block_size=1)
-    return path
+    def __init__(self, env: gym.Env, writer: VideoWriter, frame_skip: int = 1) -> None:
+        super().__init__(env)
+        self.writer = writer
+        self.overlay = FrameOverlay(env)
+        self.frame_skip = max(int(frame_skip), 1)
+        self._first: dict | None = None
+
+    def _record(self, info: dict) -> None:
+        self.writer.append(self.overlay(self.env.render(), info))
+
+    def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict]:
+        """Reset; the episode's first frame is recorded when it starts stepping (the vec env resets ahead)."""
+        obs, info = self.env.reset(**kwargs)
+        self._first = info
+        return obs, info
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """Step; record the frame when it is due or the episode ended (before the vec env resets it)."""
+        if self._first is not None:
+            self._record(self._first)
+            self._first = None
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        if terminated or truncated or self.env.unwrapped.task.steps % self.frame_skip == 0:
+            self._record(info)
+        return obs, reward, terminated, truncated, info
 
 
 def run(
     policy: Any,
     env_id: str,
     env_kwargs: dict,
-    n_steps: int,
+    n_steps: int | None,
     render_mode: str | None,
     record: Path | None,
     stats_path: str | None = None,
     deterministic: bool = True,
     seed: int = 0,
     frame_skip: int = 1,
+    n_episodes: int = 1,
 ) -> list[dict[str, float]]:
-    """Roll ``policy`` for ``n_steps`` env steps; returns one ``{return, success, collision, length}`` per episode."""
+    """Roll ``policy`` for ``n_episodes`` episodes (or ``n_steps`` env steps when given, whichever ends first).
+
+    Returns one ``{return, success, collision, length}`` per finished episode. With ``record`` the labelled frames
+    stream to the video file as they are rendered (nothing is held in memory).
+    """
+    if record is not None and record.suffix not in VIDEO_SUFFIXES:
+        raise ValueError(f"--record must end in one of {VIDEO_SUFFIXES}, got {record}")
     mode = "rgb_array" if record is not None else render_mode
-    venv = DummyVecEnv([lambda: gym.make(env_id, render_mode=mode, **env_kwargs)])
+    fps = max(1.0, vafn_gym.MultiArmEnv.metadata["render_fps"] / frame_skip)  # real-time playback
+    writer = VideoWriter(record, fps) if record is not None else None
+
+    def make_env() -> gym.Env:
+        env = gym.make(env_id, render_mode=mode, **env_kwargs)
+        return RecordingWrapper(env, writer, frame_skip) if writer is not None else env
+
+    venv = DummyVecEnv([make_env])
     if stats_path is not None:
         venv = VecNormalize.load(stats_path, venv)
         venv.training, venv.norm_reward = False, False
     venv.seed(seed)
-    base = venv.envs[0] if isinstance(venv, DummyVecEnv) else venv.venv.envs[0]  # type: ignore[attr-defined]
-    fps = int(base.metadata.get("render_fps", 30)) // max(frame_skip, 1)
     obs = venv.reset()
-    frames: list[np.ndarray] = []
     episodes: list[dict[str, float]] = []
-    total, length = 0.0, 0
+    total, length, step = 0.0, 0, 0
+    bar = tqdm(total=n_episodes, desc="episodes", unit="episode", disable=n_episodes < 2 and writer is None)
     try:
-        for step in tqdm(range(n_steps), desc="rollout", disable=n_steps < 500):
-            if record is not None and step % frame_skip == 0:
-                frames.append(base.render())
+        while len(episodes) < n_episodes and (n_steps is None or step < n_steps):
             action, _ = policy.predict(obs, deterministic=deterministic)
             obs, reward, done, info = venv.step(action)
             total += float(reward[0])
             length += 1
+            step += 1
             if done[0]:
                 episode = {"return": total, "success": float(info[0].get("is_success", False)),
                            "collision": float(info[0].get("collided", False)), "length": float(length)}
                 episodes.append(episode)
-                print(f"episode {len(episodes)}: return {total:.2f}, success {episode['success']:.0f}, "
-                      f"collision {episode['collision']:.0f}, length {length}")
+                bar.update(1)
+                tqdm.write(f"episode {len(episodes)}: return {total:.2f}, success {episode['success']:.0f}, "
+                           f"collision {episode['collision']:.0f}, length {length}")
                 total, length = 0.0, 0
                 if callable(getattr(policy, "reset", None)):
                     policy.reset()
     finally:
+        bar.close()
         venv.close()
-    if record is not None:
-        print(f"wrote {write_video(frames, record, fps)} ({len(frames)} frames)")
+        if writer is not None and writer.n_frames:
+            path = writer.close()
+            print(f"wrote {path.resolve()} ({writer.n_frames} frames at {writer.fps:g} fps, "
+                  f"{len(episodes)} episode{'s' if len(episodes) != 1 else ''})")
     return episodes
 
 
@@ -130,26 +158,34 @@ def evaluate_held_out(policy: Any, env_id: str, env_kwargs: dict, n_test: int) -
 
 def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     """Command-line entry point; returns the per-episode results."""
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--algo", default="sac", help="zoo algorithm key of the trained agent")
-    parser.add_argument("--env", default="VAFN/ThreeArmReach-v1", choices=vafn_gym.ENV_IDS)
-    parser.add_argument("-f", "--folder", default="logs", help="zoo log folder")
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        epilog="Example: python zoo/enjoy.py --pretrained sac --instruction 2,3,1,3 --record runs/enjoy/sac.mp4",
+    )
+    parser.add_argument("--algo", default="sac", help="zoo algorithm key of the trained agent (with -f)")
+    parser.add_argument("--env", default="VAFN/ThreeArmReach-v1", choices=vafn_gym.ENV_IDS, help="environment ID")
+    parser.add_argument("-f", "--folder", default="logs", help="zoo log folder the trained run is in")
     parser.add_argument("--exp-id", type=int, default=0, help="run number (0: latest)")
     parser.add_argument("--load-best", action="store_true", help="load best_model.zip instead of the final model")
     parser.add_argument("--scripted", action="store_true", help="run vafn_gym.ScriptedController (no trained agent)")
     parser.add_argument("--pretrained", default=None, help="run the packaged policy of this algorithm (e.g. sac)")
-    parser.add_argument("--n-test", type=int, default=0, help="score on N held-out test instructions instead")
-    parser.add_argument("-n", "--n-timesteps", type=int, default=1000)
+    parser.add_argument("--n-test", type=int, default=0, help="score on N held-out test instructions instead (0: off)")
+    parser.add_argument("--n-episodes", type=int, default=1,
+                        help="episodes to run; each executes one instruction (the fixed one, or a sampled one)")
+    parser.add_argument("-n", "--n-timesteps", type=int, default=None,
+                        help="stop after this many env steps even if the episodes are not finished (None: no cap)")
     parser.add_argument("--instruction", default=None, help="fixed instruction, e.g. 2,3,1,3 (default: sampled)")
     parser.add_argument("--env-kwargs", nargs="*", default=[], help="extra env kwargs as key:value (values eval'd)")
-    parser.add_argument("--render-mode", choices=["human", "rgb_array"], default=None, help="human opens a GUI window")
-    parser.add_argument("--record", type=Path, default=None, help="write the frames to this .gif or .mp4")
-    parser.add_argument("--frame-skip", type=int, default=2, help="record every N-th frame")
+    parser.add_argument("--render-mode", choices=["human", "rgb_array"], default=None,
+                        help="human opens a GUI window (default: no rendering unless --record)")
+    parser.add_argument("--record", type=Path, default=None,
+                        help="write labelled frames to this .gif or .mp4 (streamed while the episodes run)")
+    parser.add_argument("--frame-skip", type=int, default=2, help="record every N-th control step")
     parser.add_argument("--stochastic", action="store_true", help="sample actions instead of the deterministic policy")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the env")
     args = parser.parse_args(argv)
-    if args.n_timesteps < 1 or args.frame_skip < 1:
-        parser.error("-n and --frame-skip must be >= 1")
+    if (args.n_timesteps is not None and args.n_timesteps < 1) or args.frame_skip < 1 or args.n_episodes < 1:
+        parser.error("-n, --n-episodes and --frame-skip must be >= 1")
     if args.render_mode == "human" and not os.environ.get("DISPLAY"):
         parser.error("--render-mode human needs a display; use --record out.gif on a headless machine")
     register_algorithms()
@@ -173,7 +209,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     if args.instruction is not None:
         env_kwargs["instruction"] = args.instruction
     return run(policy, args.env, env_kwargs, args.n_timesteps, args.render_mode, args.record, stats,
-               not args.stochastic, args.seed, args.frame_skip)
+               not args.stochastic, args.seed, args.frame_skip, args.n_episodes)
 
 
 if __name__ == "__main__":
