@@ -207,12 +207,34 @@ def test_plot_synthetic_event_files(tmp_path: Path) -> None:
     assert {r[6] for r in rows if r[1] == "MAMLSAC"} == {"2"}
 
 
+def test_plot_without_evaluations_explains_eval_freq(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "logs" / "sac" / "VAFN-ThreeArmReach-v1_1").mkdir(parents=True)
+    with pytest.raises(SystemExit) as exit_info:
+        zoo_plot.main(["--logs", str(tmp_path / "logs"), "--out", str(tmp_path / "out/")])
+    assert exit_info.value.code == 1
+    message = capsys.readouterr().err
+    assert "no evaluations yet" in message and "--eval-freq larger than -n" in message
+    assert "VAFN-ThreeArmReach-v1_1" in message and "Traceback" not in message
+
+
+def test_plot_keeps_few_evaluations_as_points_and_names_the_env(tmp_path: Path) -> None:
+    run = tmp_path / "logs" / "sac" / "VAFN-ThreeArmReach-v1_1"
+    run.mkdir(parents=True)
+    np.savez(run / "evaluations.npz", timesteps=np.array([100, 200, 300]), results=np.ones((3, 2)),
+             successes=np.zeros((3, 2)), collisions=np.zeros((3, 2)))
+    written = zoo_plot.main(["--logs", str(tmp_path / "logs"), "--out", str(tmp_path / "out") + "/"])
+    assert {p.name for p in written} >= {"training_return.png", "training_curves.csv"}
+    rows = [r for r in (tmp_path / "out" / "training_curves.csv").read_text().splitlines()[1:] if r.startswith("ret")]
+    assert [float(r.split(",")[2]) for r in rows] == [100.0, 200.0, 300.0], "3 evaluations stay 3 points"
+    assert zoo_plot.env_names([], tmp_path / "logs") == ["VAFN-ThreeArmReach-v1"]
+
+
 def test_enjoy_records_a_gif_of_the_scripted_controller(tmp_path: Path) -> None:
     from zoo import enjoy
 
-    episodes = enjoy.main(["--scripted", "--instruction", "1", "-n", "150", "--frame-skip", "5", "--record",
+    episodes = enjoy.main(["--scripted", "--instruction", "1", "--frame-skip", "5", "--record",
                            str(tmp_path / "a.gif"), "--env-kwargs", "render_width:160", "render_height:120"])
-    assert episodes and episodes[0]["success"] == 1.0
+    assert len(episodes) == 1 and episodes[0]["success"] == 1.0, "one episode per instruction by default"
     assert (tmp_path / "a.gif").stat().st_size > 5_000
 
 

@@ -87,6 +87,16 @@ def load_tensorboard(paths: Iterable[Path], metrics: Sequence[str]) -> dict[str,
     return curves
 
 
+class NoEvaluationsError(FileNotFoundError):
+    """A run folder holds no evaluation yet (message says why and what to do)."""
+
+
+NO_EVAL_HINT = (
+    "the zoo evaluates every --eval-freq training steps, so a run with --eval-freq larger than -n (its training "
+    "steps) never evaluates; rerun with --eval-freq below -n, or plot the training rollouts with --tb"
+)
+
+
 def load_evaluations(
     log_folder: Path, env_name: str | None, metrics: Sequence[str]
 ) -> dict[str, dict[str, list[Curve]]]:
@@ -95,13 +105,16 @@ def load_evaluations(
     pattern = f"{env_name}_*/evaluations.npz" if env_name else "*/evaluations.npz"
     files = sorted(Path(log_folder).glob(f"*/{pattern}"))
     if not files:
-        raise FileNotFoundError(f"no evaluations.npz matching {log_folder}/<algo>/{pattern}")
+        runs = sorted(Path(log_folder).glob(f"*/{env_name}_*" if env_name else "*/*_*"))
+        found = f"runs {', '.join(str(r) for r in runs[:5])} have" if runs else "no run folder has"
+        raise NoEvaluationsError(f"no evaluations yet under {log_folder}/<algo>/{pattern}: {found} no "
+                                 f"evaluations.npz; {NO_EVAL_HINT}")
     for file in files:
         data = np.load(file)
         algo = file.parent.parent.name
         for metric in metrics:
             key = NPZ_KEYS[metric]
-            if key in data and len(data[key]):
+            if key in data and np.asarray(data[key]).size:
                 values = np.asarray(data[key], float).mean(axis=1)
                 curves[metric][algo].append(Curve(np.asarray(data["timesteps"], float), values))
     return curves
@@ -123,7 +136,11 @@ def aggregate(curves: list[Curve], grid_points: int = GRID_POINTS) -> Aggregate:
         raise ValueError("no runs to aggregate")
     start = max(c.steps.min() for c in curves)
     stop = min(c.steps.max() for c in curves)
-    x = np.linspace(start, stop, grid_points) if stop > start else np.array([stop])
+    logged = np.unique(np.concatenate([c.steps[(c.steps >= start) & (c.steps <= stop)] for c in curves]))
+    # Few evaluations: keep the logged steps themselves (drawn with markers) instead of a dense interpolated grid.
+    x = logged if len(logged) <= grid_points else np.linspace(start, stop, grid_points)
+    if not len(x):
+        x = np.array([stop])
     return mean_ci(x, np.stack([np.interp(x, c.steps, c.values) for c in curves]))
 
 
@@ -212,31 +229,62 @@ def _merge(into: dict[str, dict[str, list[Curve]]], other: dict[str, dict[str, l
             into.setdefault(metric, defaultdict(list))[algo].extend(runs)
 
 
+def env_names(curves_sources: Sequence[Path], logs: Path | None) -> list[str]:
+    """Env names found in the run folders (TensorBoard ``<EnvName>/<ALGO>_<N>``, logs ``<algo>/<EnvName>_<N>``)."""
+    names = set()
+    for path in curves_sources:
+        for event in Path(path).rglob("events.out.tfevents.*"):
+            parent = event.parent.parent.name
+            if parent.startswith("VAFN-"):
+                names.add(parent)
+    if logs is not None:
+        names.update(algo_of_run(run.name) for run in Path(logs).glob("*/*_*") if run.name.startswith("VAFN-"))
+    return sorted(names)
+
+
+def output_prefix(out: str) -> Path:
+    """``--out``: a prefix (``results/training`` -> ``results/training_<metric>.png``); a folder when it ends in
+    ``/`` or is an existing folder (``runs/plots/`` -> ``runs/plots/training_<metric>.png``)."""
+    path = Path(out)
+    return path / "training" if out.endswith(("/", "\\")) or path.is_dir() else path
+
+
 def main(argv: list[str] | None = None) -> list[Path]:
     """Command-line entry point; returns the written files."""
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     parser.add_argument("--tb", nargs="*", default=[], type=Path, help="TensorBoard folders (searched recursively)")
     parser.add_argument(
         "--logs", type=Path, default=None, help="zoo log folder with <algo>/<EnvName>_<N>/evaluations.npz"
     )
-    parser.add_argument("--env", default=None, help="env ID or EnvName to select in --logs (default: all)")
-    parser.add_argument("--metrics", nargs="+", default=list(TB_TAGS), choices=list(TB_TAGS))
-    parser.add_argument("--algos", nargs="*", default=None, help="keep only these algorithms (as labelled)")
-    parser.add_argument("--out", type=Path, default=Path("results/training"), help="output prefix (<out>_<metric>.png)")
-    parser.add_argument("--title", default="")
+    parser.add_argument("--env", default=None, help="env ID or EnvName to select in --logs (None: all)")
+    parser.add_argument("--metrics", nargs="+", default=list(TB_TAGS), choices=list(TB_TAGS), help="what to plot")
+    parser.add_argument("--algos", nargs="*", default=None, help="keep only these algorithms (None: all, as labelled)")
+    parser.add_argument("--out", default="results/training",
+                        help="output prefix: writes <out>_<metric>.png and <out>_curves.csv; ending in / (or an "
+                        "existing folder) it is a folder: <out>/training_<metric>.png")
+    parser.add_argument("--title", default="", help="plot title (empty: the env name and the sources)")
     args = parser.parse_args(argv)
     if not args.tb and args.logs is None:
         parser.error("give --tb and/or --logs")
     curves: dict[str, dict[str, list[Curve]]] = {m: defaultdict(list) for m in args.metrics}
-    if args.tb:
-        _merge(curves, load_tensorboard(args.tb, args.metrics))
-    if args.logs is not None:
-        env_name = args.env.replace("/", "-") if args.env else None
-        _merge(curves, load_evaluations(args.logs, env_name, args.metrics))
-    if args.algos:
-        wanted = {a.lower() for a in args.algos}
-        curves = {m: {a: r for a, r in per_algo.items() if a.lower() in wanted} for m, per_algo in curves.items()}
-    written = make_plots(curves, args.out, args.title or (args.env or ""))
+    try:
+        if args.tb:
+            _merge(curves, load_tensorboard(args.tb, args.metrics))
+        if args.logs is not None:
+            env_name = args.env.replace("/", "-") if args.env else None
+            _merge(curves, load_evaluations(args.logs, env_name, args.metrics))
+        if args.algos:
+            wanted = {a.lower() for a in args.algos}
+            curves = {m: {a: r for a, r in per_algo.items() if a.lower() in wanted} for m, per_algo in curves.items()}
+        envs = [args.env] if args.env else env_names(args.tb, args.logs)
+        title = args.title or (", ".join(envs) if envs else "")
+        written = make_plots(curves, output_prefix(args.out), title)
+    except FileNotFoundError as error:  # NoEvaluationsError included
+        parser.exit(1, f"plot.py: {error}\n")
+    except ValueError as error:
+        parser.exit(1, f"plot.py: {error}; if the runs are new, {NO_EVAL_HINT}\n")
     for path in written:
         print(path)
     return written
