@@ -1,6 +1,6 @@
 """MARL baselines and MTSAC: returns of the CI-sized runs, and learner cost per gradient step. Prints, never asserts.
 
-Usage (the runs behind the numbers in the README, "Baselines")::
+Usage (the runs behind the numbers in docs/algorithms.md, "Cost and CI-sized runs")::
 
     OMP_NUM_THREADS=1 nice -n 10 python benchmarks/baselines.py ci      # the training runs of tests/test_baselines.py
     OMP_NUM_THREADS=1 nice -n 10 python benchmarks/baselines.py speed   # thread-CPU ms per gradient step, batch 256
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -88,11 +89,22 @@ def speed(args: argparse.Namespace) -> None:
     env.close()
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """``--help``: the module docstring as written, and every option's default."""
+
+
+def plain(text: str) -> str:
+    """``text`` without reStructuredText markup (roles and double backticks), for ``--help``."""
+    return re.sub(r":\w+:`([^`]*)`", r"\1", text).replace("``", "").replace("::\n", ":\n")
+
+
 def main() -> None:
     """Run the chosen measurement with one torch thread."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["ci", "speed"])
-    parser.add_argument("--steps", type=int, help="ci: env steps per algorithm (default: the tests' budgets)")
+    parser = argparse.ArgumentParser(description=plain(__doc__), formatter_class=HelpFormatter)
+    parser.add_argument("what", choices=["ci", "speed"],
+                        help="ci: the CI-sized training runs against a random policy; speed: cost per gradient step")
+    parser.add_argument("--steps", type=int,
+                        help="ci: env steps per algorithm (None: the budgets of tests/test_baselines.py)")
     parser.add_argument("--env", default="VAFN/ThreeArmReach-v1", help="speed: env ID")
     parser.add_argument("--env-kwargs", type=json.loads, default={}, help='speed: JSON, e.g. \'{"n_arms": 4}\'')
     parser.add_argument("--warmup-steps", type=int, default=WARMUP_STEPS, help="speed: random steps before timing")

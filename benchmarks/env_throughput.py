@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import csv
 import os
+import re
 import time
 from collections.abc import Callable
 from typing import Any
@@ -136,12 +137,22 @@ def print_arm_table(best: dict[str, float], rounds: int) -> list[dict[str, Any]]
     return rows
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """``--help``: the module docstring as written, and every option's default."""
+
+
+def plain(text: str) -> str:
+    """``text`` without reStructuredText markup (roles and double backticks), for ``--help``."""
+    return re.sub(r":\w+:`([^`]*)`", r"\1", text).replace("``", "").replace("::\n", ":\n")
+
+
 def main() -> None:
     """Run the benchmark and print the tables."""
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--steps", type=int, default=3000)
-    parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--arms", type=int, nargs="*", default=[2, 3, 4, 6])
+    parser = argparse.ArgumentParser(description=plain(__doc__), formatter_class=HelpFormatter)
+    parser.add_argument("--steps", type=int, default=3000, help="random-action env steps per env and round")
+    parser.add_argument("--rounds", type=int, default=3, help="rounds over all envs; the best round is reported")
+    parser.add_argument("--arms", type=int, nargs="*", default=[2, 3, 4, 6],
+                        help="arm counts of the second table (none: skip it)")
     parser.add_argument("--csv", default=None, help="also write both tables to this CSV file")
     args = parser.parse_args()
     rows = print_peer_table(best_of(peer_candidates(args.steps), args.rounds), args.rounds)

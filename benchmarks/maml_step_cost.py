@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import time
 from collections.abc import Callable
 from functools import partial
@@ -72,18 +73,27 @@ def time_call(fn: Callable[[], object], repeats: int) -> float:
     return best
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """``--help``: the module docstring as written, and every option's default."""
+
+
+def plain(text: str) -> str:
+    """``text`` without reStructuredText markup (roles and double backticks), for ``--help``."""
+    return re.sub(r":\w+:`([^`]*)`", r"\1", text).replace("``", "").replace("::\n", ":\n")
+
+
 def main() -> None:
     """Time plain SAC and MAML-SAC (loop/vmap x first/second order x K) and print per-step costs and ratios."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--env", default=ENV_ID)
-    parser.add_argument("--env-kwargs", type=json.loads, default={}, help='JSON, e.g. \'{"n_arms": 4}\'')
+    parser = argparse.ArgumentParser(description=plain(__doc__), formatter_class=HelpFormatter)
+    parser.add_argument("--env", default=ENV_ID, help="env ID whose spaces size the networks")
+    parser.add_argument("--env-kwargs", type=json.loads, default={}, help='env kwargs as JSON, e.g. \'{"n_arms": 4}\'')
     parser.add_argument("--policy", default="MlpPolicy", help="policy alias of both (MlpPolicy or SharedAgentPolicy)")
     parser.add_argument("--steps", type=int, default=20, help="gradient steps per timed call")
     parser.add_argument("--repeats", type=int, default=3, help="timed calls (the best is kept)")
-    parser.add_argument("--meta-batch-size", type=int, default=5)
-    parser.add_argument("--n-support", type=int, default=200)
-    parser.add_argument("--batch-size", type=int, default=256)
-    parser.add_argument("--inner-steps", type=int, nargs="+", default=[1, 3])
+    parser.add_argument("--meta-batch-size", type=int, default=5, help="tasks per MAML-SAC outer step")
+    parser.add_argument("--n-support", type=int, default=200, help="support transitions per task")
+    parser.add_argument("--batch-size", type=int, default=256, help="minibatch size of both algorithms")
+    parser.add_argument("--inner-steps", type=int, nargs="+", default=[1, 3], help="inner-loop steps K to time")
     args = parser.parse_args()
     torch.set_num_threads(1)
     rng = np.random.default_rng(0)

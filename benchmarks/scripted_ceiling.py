@@ -13,6 +13,7 @@ import argparse
 import csv
 import math
 import os
+import re
 import time
 from typing import Any
 
@@ -85,15 +86,25 @@ def summary_line(label: str, rows: list[dict[str, Any]]) -> str:
     )
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """``--help``: the module docstring as written, and every option's default."""
+
+
+def plain(text: str) -> str:
+    """``text`` without reStructuredText markup (roles and double backticks), for ``--help``."""
+    return re.sub(r":\w+:`([^`]*)`", r"\1", text).replace("``", "").replace("::\n", ":\n")
+
+
 def main() -> None:
     """Run the controller on the benchmark's test tasks and print a table per difficulty."""
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env-id", default="VAFN/ThreeArmReach-v1")
-    parser.add_argument("--n-arms", type=int, default=None)
-    parser.add_argument("--robot", default=None, choices=sorted(vafn_gym.ROBOTS))
-    parser.add_argument("--targets", default=None, choices=vafn_gym.TARGET_MODES)
-    parser.add_argument("--observe-goal", action="store_true")
-    parser.add_argument("--n-tasks", type=int, default=200)
+    parser = argparse.ArgumentParser(description=plain(__doc__), formatter_class=HelpFormatter)
+    parser.add_argument("--env-id", default="VAFN/ThreeArmReach-v1", help="registered env ID")
+    parser.add_argument("--n-arms", type=int, default=None, help="arm count (None: the env's own)")
+    parser.add_argument("--robot", default=None, choices=sorted(vafn_gym.ROBOTS), help="robot (None: the env's own)")
+    parser.add_argument("--targets", default=None, choices=vafn_gym.TARGET_MODES,
+                        help="target mode (None: the env's own)")
+    parser.add_argument("--observe-goal", action="store_true", help="observe the targets (8 numbers per arm)")
+    parser.add_argument("--n-tasks", type=int, default=200, help="held-out test instructions, one episode each")
     parser.add_argument("--seed", type=int, default=1234, help="seed of the held-out test set")
     parser.add_argument("--csv", default=None, help="also write one row per episode to this CSV file")
     args = parser.parse_args()
