@@ -8,7 +8,7 @@ Examples::
     # the same with the scripted controller as the policy (no adaptation)
     python zoo/online_control.py --policy scripted --steps 1500 --schedule "0:2,3,1;10:1,2;600:3,1,2" --out runs/online
 
-    # a trained MAML-SAC, random (Poisson) arrivals of held-out test instructions, K=5 adaptation rounds each
+    # any saved SB3 model (SAC, MTSAC, MAML-SAC, ...); Poisson arrivals of held-out instructions, K=5 rounds each
     python zoo/online_control.py --model runs/model.zip --targets per_arm --max-length 2 --split test \\
         --poisson-rate 0.004 --steps 3000 --k 5 --out runs/online
 """
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +33,7 @@ import vafn_gym  # noqa: E402,F401  (registers the env IDs)
 from vafn_gym import TARGET_MODES, ScriptedController  # noqa: E402
 from vafn_gym.queue import PoissonArrivals, ScheduledArrivals  # noqa: E402
 from vafn_sb3 import load_pretrained  # noqa: E402
-from vafn_sb3.maml_sac import MAMLSAC  # noqa: E402
+from vafn_sb3.loading import family_mismatch, load_model, training_env  # noqa: E402
 from vafn_sb3.online import OnlineController  # noqa: E402
 from zoo.plot import plot_online_distances  # noqa: E402
 
@@ -67,14 +68,20 @@ def parse_schedule(text: str) -> dict[int, list[str]]:
     return schedule
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     """Parse arguments, run the controller for ``--steps`` steps, write ``online_log.csv`` and
     ``online_distances.png``."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        epilog='Example: python zoo/online_control.py --pretrained sac --schedule "0:2,3,1;10:1,2" --steps 600',
+    )
     source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument("--model", type=Path, help="a saved MAMLSAC (.zip)")
+    source.add_argument("--model", type=Path,
+                        help="any saved SB3 model with predict (.zip: SAC, MTSAC, MAML-SAC, MAAC, ...)")
     source.add_argument("--policy", choices=["scripted", "random"], help="a reference policy instead of a model")
     source.add_argument("--pretrained", help="a packaged policy by algorithm (e.g. sac): no training needed")
+    parser.add_argument("--algo", default=None,
+                        help="algorithm of --model when it cannot be told from the file (None: detected)")
     arrivals = parser.add_mutually_exclusive_group(required=True)
     arrivals.add_argument("--schedule", type=parse_schedule, help="scripted arrivals 'STEP:INSTR;STEP:INSTR'")
     arrivals.add_argument("--poisson-rate", type=float, help="random arrivals per step, instructions from --split")
@@ -82,13 +89,16 @@ def main() -> None:
     parser.add_argument(
         "--targets", default="default", choices=list(TARGET_MODES), help="where waypoint targets come from"
     )
-    parser.add_argument("--split", default="test", choices=["train", "validation", "test"])
-    parser.add_argument("--max-length", type=int, default=3)
-    parser.add_argument("--k", type=int, help="adaptation rounds per instruction (default: the model's inner_steps)")
+    parser.add_argument("--split", default="test", choices=["train", "validation", "test"],
+                        help="task split the Poisson arrivals sample from")
+    parser.add_argument("--max-length", type=int, default=3, help="longest sampled instruction")
+    parser.add_argument("--k", type=int,
+                        help="adaptation rounds per instruction (None: the model's inner_steps, 0 without adapt)")
     parser.add_argument("--n-support", type=int, default=25, help="support transitions per instruction (twin env)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=Path("runs/online"))
-    args = parser.parse_args()
+    parser.add_argument("--seed", type=int, default=0, help="seed of the arrivals, support rollouts and env")
+    parser.add_argument("--out", type=Path, default=Path("runs/online"),
+                        help="folder for online_log.csv and online_distances.png")
+    args = parser.parse_args(argv)
     torch.set_num_threads(1)
 
     env = gym.make(
@@ -100,14 +110,32 @@ def main() -> None:
         stream.arrival_process = ScheduledArrivals(args.schedule)
     else:
         stream.arrival_process = PoissonArrivals(args.poisson_rate, sampler=stream.sampler.sample, seed=args.seed)
+    trained: tuple[str | None, dict] = (None, {})
     if args.pretrained is not None:
         model = load_pretrained(args.pretrained)
+        trained = ("VAFN/ThreeArmReach-v1", {})
     elif args.model is not None:
-        model = MAMLSAC.load(args.model)
+        try:
+            model, algo = load_model(args.model, args.algo)
+        except (ValueError, FileNotFoundError) as error:
+            parser.exit(2, f"online_control.py: error: {error}\n")
+        print(f"loaded {args.model} as {type(model).__name__} ({algo})")
+        trained = training_env(args.model)
     elif args.policy == "scripted":
         model = ScriptedController.for_env(env)
     else:
         model = RandomPolicy(env.action_space, args.seed)
+    if args.policy is None:
+        expected = env.observation_space.shape
+        if getattr(model, "observation_space", None) is not None and model.observation_space.shape != expected:
+            parser.exit(2, f"online_control.py: error: the model observes {model.observation_space.shape}, the "
+                           f"stream env gives {expected}: it was trained on another task family\n")
+        for difference in family_mismatch(*trained, "VAFN/ThreeArmStream-v1", {"targets": args.targets}):
+            warnings.warn(f"the model was trained on {trained[0]} and runs on VAFN/ThreeArmStream-v1 with another "
+                          f"task family ({difference}); expect it to miss targets", stacklevel=1)
+    if args.model is not None and trained[0] is None:
+        warnings.warn(f"no training config beside {args.model} (zoo config.yml or .json): cannot check that it was "
+                      "trained on this task family", stacklevel=1)
     controller = OnlineController(model, env, k=args.k, n_support=args.n_support, seed=args.seed)
     controller.run(args.steps)
     controller.close()

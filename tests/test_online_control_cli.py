@@ -1,0 +1,39 @@
+"""zoo/online_control.py --model: any saved SB3 model with predict runs, and a task-family mismatch is warned about."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO_ROOT))
+
+from zoo import online_control  # noqa: E402
+
+
+@pytest.mark.parametrize("algo", ["SAC", "MTSAC"])
+def test_online_control_runs_any_sb3_model_and_warns_on_another_task_family(algo: str, tmp_path: Path) -> None:
+    import gymnasium as gym
+
+    import vafn_gym  # noqa: F401
+    import vafn_sb3
+
+    env = gym.make("VAFN/ThreeArmReachHidden-v1", max_length=1)
+    model = getattr(vafn_sb3, algo)("MlpPolicy", env, policy_kwargs={"net_arch": [16, 16]}, seed=0)
+    model.save(tmp_path / "model.zip")
+    env.close()
+    (tmp_path / "model.json").write_text(json.dumps({"env_id": "VAFN/ThreeArmReachHidden-v1"}))
+    with pytest.warns(UserWarning, match="targets: trained with 'per_arm', running with 'default'"):
+        online_control.main(["--model", str(tmp_path / "model.zip"), "--schedule", "0:1", "--steps", "20",
+                             "--out", str(tmp_path / "out")])
+    assert (tmp_path / "out" / "online_log.csv").read_text().count("\n") == 2, "one instruction logged"
+
+
+def test_online_control_refuses_an_unloadable_model(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "junk.zip").write_bytes(b"not a zip")
+    with pytest.raises(SystemExit) as exit_info:
+        online_control.main(["--model", str(tmp_path / "junk.zip"), "--schedule", "0:1", "--steps", "5"])
+    assert exit_info.value.code == 2 and "not a saved model" in capsys.readouterr().err
