@@ -33,11 +33,15 @@ EVAL_SEED_BASE = 1000
 
 
 def parse_args() -> argparse.Namespace:
-    """Command-line options."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, default=5)
+    """Command-line options; ``--help`` shows the module docstring without markup and every option's default."""
+
+    class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+        pass
+
+    parser = argparse.ArgumentParser(description=__doc__.replace("``", ""), formatter_class=HelpFormatter)
+    parser.add_argument("--seeds", type=int, default=5, help="evaluation seeds per cell (fresh items each)")
     parser.add_argument("--items", type=int, default=100, help="items per seed and difficulty")
-    parser.add_argument("--checkpoint", default=None)
+    parser.add_argument("--checkpoint", default=None, help="model checkpoint (.pt; None: the packaged one)")
     parser.add_argument("--workers", type=int, default=2, help="data-generation processes")
     parser.add_argument(
         "--in-distribution", type=int, default=1, help="seeds of the in-distribution comparison (0: skip)"
@@ -45,7 +49,8 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument(
         "--transfer-items", type=int, default=1000, help="training items for the cross-modal probe (0: skip)"
     )
-    parser.add_argument("--out", type=Path, default=RESULTS / "instruction_table")
+    parser.add_argument("--out", type=Path, default=RESULTS / "instruction_table",
+                        help="output prefix: writes <out>.md and <out>.csv")
     return parser.parse_args()
 
 
