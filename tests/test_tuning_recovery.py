@@ -16,6 +16,9 @@ import pytest
 from optuna.distributions import FloatDistribution
 from optuna.trial import TrialState
 
+from optuna.storages._heartbeat import is_heartbeat_enabled
+
+from zoo.experiment import VAFNExperimentManager
 from zoo.tuning import RETRY_OF_ATTR, WORKER_ATTR, WorkerTag, open_storage, recover_stale_trials, worker_id
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -161,6 +164,8 @@ def test_rdb_storages_fail_and_retry_trials_whose_heartbeat_stopped(tmp_path: Pa
     storage = open_storage(url, heartbeat_interval=1, grace_period=1)
     study = optuna.create_study(study_name="s", storage=storage, direction="maximize")
     stale = study.ask(SPACE)  # e.g. a worker on another host that lost power
+    stale.set_user_attr(WORKER_ATTR, "another-host:12:boot-1:deadbeef")
+    stale.set_user_attr("note", "kept")
     storage.record_heartbeat(stale._trial_id)
     time.sleep(2.1)  # sqlite's clock has whole seconds
     study.optimize(lambda trial: trial.suggest_float("x", 0, 1), n_trials=1)
@@ -169,6 +174,45 @@ def test_rdb_storages_fail_and_retry_trials_whose_heartbeat_stopped(tmp_path: Pa
     retry = trials[-1]
     assert retry.state == TrialState.COMPLETE and retry.params == stale.params
     assert retry.system_attrs["failed_trial"] == stale.number
+    # Marked like a local recovery, and without the dead worker's tag (it would look stale while being picked up).
+    assert retry.user_attrs == {"note": "kept", RETRY_OF_ATTR: stale.number}
+
+
+def test_recovery_at_start_up_fails_heartbeat_stale_trials_of_any_host(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    storage = open_storage(url, heartbeat_interval=1, grace_period=1)
+    study = optuna.create_study(study_name="s", storage=storage, direction="maximize")
+    foreign = _running_trial(study, "another-host:12:boot-1:deadbeef")  # never judged by the local pid check
+    storage.record_heartbeat(foreign._trial_id)
+    live = _running_trial(study, "another-host:13:boot-1:deadbeef")
+    time.sleep(2.1)
+    storage.record_heartbeat(live._trial_id)
+    assert recover_stale_trials(storage, "s") == [foreign.number]
+    assert recover_stale_trials(storage, "s") == [], "recovery is not idempotent"
+    trials = study.get_trials()
+    assert [t.state for t in trials] == [TrialState.FAIL, TrialState.RUNNING, TrialState.WAITING]
+    assert trials[-1].user_attrs == {RETRY_OF_ATTR: foreign.number}
+
+
+@pytest.mark.parametrize("kind", ["sqlite", "journal"])
+def test_the_zoo_optimisation_loop_runs_on_the_heartbeat_storage(
+    kind: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from zoo.train import main as train_main
+
+    seen: list[tuple[bool, int | None]] = []
+
+    def objective(self: VAFNExperimentManager, trial: optuna.Trial) -> float:
+        storage = trial.study._storage
+        seen.append((is_heartbeat_enabled(storage), getattr(storage, "get_heartbeat_interval", lambda: None)()))
+        return trial.suggest_float("x", 0, 1)
+
+    monkeypatch.setattr(VAFNExperimentManager, "objective", objective)
+    storage = f"sqlite:///{tmp_path / 'study.db'}" if kind == "sqlite" else str(tmp_path / "study.log")
+    train_main(["--algo", "sac", "--env", "VAFN/ThreeArmReach-v1", "-optimize", "--n-trials", "2", "-n", "100",
+                "-f", str(tmp_path), "--storage", storage, "--study-name", "s", "--heartbeat-interval", "7",
+                "--no-optim-plots", "--sampler", "random"])
+    assert seen == ([(True, 7)] * 2 if kind == "sqlite" else [(False, None)] * 2)
 
 
 def test_journal_storages_have_no_heartbeat(journal: str) -> None:

@@ -5,21 +5,29 @@
 * a sampled ``policy_kwargs`` is merged into the YAML's instead of replacing it (during ``-optimize`` and
   ``--trial-id``);
 * tuning defaults to a local journal file, tags each trial with its worker, and on restart marks trials left RUNNING by
-  a dead local worker as FAIL and re-queues their parameters, so a killed worker's study resumes cleanly.
+  a dead local worker as FAIL and re-queues their parameters, so a killed worker's study resumes cleanly;
+* an RDB ``--storage`` URL (PostgreSQL, MySQL, SQLite) is opened with Optuna heartbeats
+  (:func:`zoo.tuning.open_storage`) and the zoo's optimisation loop runs on that storage object, so a trial whose
+  worker died on any host is failed and re-queued by the next worker;
+* ``maml_sac`` warns when ``-n`` leaves no step after ``warmup_steps`` (no meta-iteration would run).
 """
 
 from __future__ import annotations
 
+import contextlib
 import contextvars
+import warnings
+from collections.abc import Iterator
 from typing import Any
 
 import optuna
+import rl_zoo3.exp_manager as zoo_exp_manager
 from rl_zoo3.exp_manager import ExperimentManager
 from rl_zoo3.hyperparams_opt import HYPERPARAMS_SAMPLER
 from stable_baselines3.common.callbacks import EvalCallback
 
 from vafn_sb3.callbacks import RolloutCollisionCallback, SuccessCollisionEvalCallback
-from zoo.tuning import WORKER_ATTR, recover_stale_trials, worker_id
+from zoo.tuning import HEARTBEAT_INTERVAL_S, WORKER_ATTR, is_journal, open_storage, recover_stale_trials, worker_id
 
 #: Monitor columns written for VAFN envs (success and "any collision this episode").
 VAFN_INFO_KEYWORDS = ("is_success", "collided")
@@ -42,8 +50,56 @@ def _merge_policy_kwargs(sampler: Any) -> Any:
     return sample
 
 
+class _OptunaWithStorage:
+    """The ``optuna`` module as rl_zoo3 sees it, except that ``create_study`` uses a storage object we opened."""
+
+    def __init__(self, storage: optuna.storages.BaseStorage) -> None:
+        self._storage = storage
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(optuna, name)
+
+    def create_study(self, *args: Any, storage: Any = None, **kwargs: Any) -> optuna.Study:
+        """``optuna.create_study`` on the opened storage (rl_zoo3 passes the URL string it was given)."""
+        return optuna.create_study(*args, storage=self._storage, **kwargs)
+
+
+@contextlib.contextmanager
+def _zoo_uses_storage(storage: optuna.storages.BaseStorage) -> Iterator[None]:
+    """While active, rl_zoo3's optimisation loop creates its study on ``storage`` instead of reopening the URL."""
+    original = zoo_exp_manager.optuna
+    zoo_exp_manager.optuna = _OptunaWithStorage(storage)  # type: ignore[assignment]
+    try:
+        yield
+    finally:
+        zoo_exp_manager.optuna = original
+
+
+def warn_if_no_meta_iteration(algo: str, hyperparams: dict[str, Any], n_timesteps: int) -> bool:
+    """Warn (and return True) when ``n_timesteps`` ends inside ``warmup_steps``, so no meta-iteration would run."""
+    warmup = hyperparams.get("warmup_steps")
+    if warmup is None or n_timesteps > int(warmup):
+        return False
+    warnings.warn(
+        f"{algo}: -n {n_timesteps} is not above warmup_steps={int(warmup)}: training ends in the plain-SAC warm-up "
+        f"and no meta-iteration will run (raise -n above {int(warmup)} or pass -params warmup_steps:N)",
+        UserWarning,
+        stacklevel=2,
+    )
+    return True
+
+
 class VAFNExperimentManager(ExperimentManager):
-    """ExperimentManager with success/collision evaluation, policy_kwargs merging and resumable local tuning."""
+    """ExperimentManager with success/collision evaluation, policy_kwargs merging and resumable tuning."""
+
+    #: Heartbeat period and grace period (s) of RDB storages during ``-optimize`` (``zoo/train.py`` sets them).
+    heartbeat_interval: int = HEARTBEAT_INTERVAL_S
+    heartbeat_grace: int | None = None
+
+    @classmethod
+    def with_heartbeat(cls, interval: int, grace: int | None) -> type[VAFNExperimentManager]:
+        """A subclass whose RDB tuning storages use these heartbeat settings (the class itself is left unchanged)."""
+        return type(cls.__name__, (cls,), {"heartbeat_interval": interval, "heartbeat_grace": grace})
 
     def _is_vafn_env(self) -> bool:
         return self.env_name.gym_id.startswith("VAFN/")
@@ -66,6 +122,7 @@ class VAFNExperimentManager(ExperimentManager):
             hyperparams["policy_kwargs"] = {**hyperparams.get("policy_kwargs", {}), **tuned, **cli}
         if self._is_vafn_env() and not self.monitor_kwargs:
             self.monitor_kwargs = {"info_keywords": VAFN_INFO_KEYWORDS}
+        warn_if_no_meta_iteration(self.algo, hyperparams, self.n_timesteps)
         return hyperparams, env_wrapper, callbacks, vec_env_wrapper
 
     # --- callbacks ---
@@ -97,10 +154,21 @@ class VAFNExperimentManager(ExperimentManager):
         _yaml_policy_kwargs.set(dict(self._hyperparams.get("policy_kwargs") or {}))
         return super().objective(trial)
 
+    def open_tuning_storage(self) -> optuna.storages.BaseStorage | None:
+        """The ``--storage`` opened for tuning: a journal file, or an RDB URL with this manager's heartbeats."""
+        if self.storage is None:
+            return None
+        return open_storage(self.storage, heartbeat_interval=self.heartbeat_interval, grace_period=self.heartbeat_grace)
+
     def hyperparameters_optimization(self) -> None:
-        """Recover trials of dead local workers, then run the zoo's optimisation loop."""
-        if self.storage is not None and self.study_name is not None:
-            recovered = recover_stale_trials(self.storage, self.study_name)
+        """Recover trials of dead workers, then run the zoo's optimisation loop (on the heartbeat storage for RDB)."""
+        storage = self.open_tuning_storage()
+        if storage is not None and self.study_name is not None:
+            recovered = recover_stale_trials(storage, self.study_name)
             if recovered and self.verbose > 0:
                 print(f"Marked stale trials {recovered} (dead worker) as FAIL and re-queued their parameters")
-        super().hyperparameters_optimization()
+        if storage is None or is_journal(self.storage):
+            super().hyperparameters_optimization()  # the zoo opens the same journal file itself
+            return
+        with _zoo_uses_storage(storage):
+            super().hyperparameters_optimization()

@@ -14,6 +14,7 @@ Studies resume across worker restarts: each trial is tagged with its worker (hos
 
 from __future__ import annotations
 
+import copy
 import inspect
 import os
 import socket
@@ -266,19 +267,50 @@ def is_stale(trial: optuna.trial.FrozenTrial, untagged_grace_s: float = UNTAGGED
     return not _tagged_owner_alive(owner, trial.datetime_start)
 
 
-def _heartbeat_kwargs(heartbeat_interval: int, grace_period: int | None, max_retry: int | None) -> dict[str, Any]:
-    """RDBStorage's heartbeat arguments under the installed Optuna's names (renamed in 4.9)."""
+def _retry_class() -> type:
+    """Optuna's callback that re-queues a heartbeat-stale trial (renamed in Optuna 4.9)."""
     parameters = inspect.signature(optuna.storages.RDBStorage.__init__).parameters
     retry_class = getattr(optuna.storages, "RetryHeartbeatStaleTrialCallback", None)
     if retry_class is None or "heartbeat_stale_trial_callback" not in parameters:
-        retry_class, callback_name = optuna.storages.RetryFailedTrialCallback, "failed_trial_callback"
-    else:
+        return optuna.storages.RetryFailedTrialCallback
+    return retry_class
+
+
+class RetryStaleTrial(_retry_class()):  # type: ignore[misc]
+    """Optuna's retry of a heartbeat-stale trial, marked like a local recovery and without the dead worker's tag.
+
+    The copy keeps Optuna's ``failed_trial``/``retry_history`` system attributes and gets ``retry_of`` (the stale
+    trial's number); the dead worker's tag is dropped so the retry never looks like a trial of a dead worker while
+    the next worker is picking it up.
+    """
+
+    def __call__(self, study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
+        """Re-queue ``trial``'s parameters as a WAITING trial (up to ``max_retry`` times)."""
+        trial = copy.deepcopy(trial)
+        trial.user_attrs = {
+            **{key: value for key, value in trial.user_attrs.items() if key != WORKER_ATTR},
+            RETRY_OF_ATTR: trial.number,
+        }
+        super().__call__(study, trial)
+
+
+def _heartbeat_kwargs(heartbeat_interval: int, grace_period: int | None, max_retry: int | None) -> dict[str, Any]:
+    """RDBStorage's heartbeat arguments under the installed Optuna's names (renamed in 4.9)."""
+    parameters = inspect.signature(optuna.storages.RDBStorage.__init__).parameters
+    if "heartbeat_stale_trial_callback" in parameters:
         callback_name = "heartbeat_stale_trial_callback"
+    else:
+        callback_name = "failed_trial_callback"
     return {
         "heartbeat_interval": heartbeat_interval,
         "grace_period": grace_period,
-        callback_name: retry_class(max_retry=max_retry),
+        callback_name: RetryStaleTrial(max_retry=max_retry),
     }
+
+
+def is_journal(storage: str) -> bool:
+    """Whether ``storage`` names a journal file (rl_zoo3's rule: the path ends in ``.log``), not an RDB URL."""
+    return storage.endswith(".log")
 
 
 def open_storage(
@@ -292,15 +324,16 @@ def open_storage(
     :param storage: journal file path or RDB URL (sqlite/postgresql/mysql).
     :param heartbeat_interval: seconds between heartbeats of a running trial (RDB only; None disables them). A trial
         without a heartbeat for ``grace_period`` (default ``2 * heartbeat_interval``) is failed by the next worker
-        that starts a trial, and re-queued up to ``max_retry`` times, whichever host it ran on.
+        that starts a trial (or starts up), and re-queued up to ``max_retry`` times, whichever host it ran on.
     """
-    if storage.endswith(".log"):
+    if is_journal(storage):
         Path(storage).parent.mkdir(parents=True, exist_ok=True)
         return optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(storage))
     if heartbeat_interval is None:
         return optuna.storages.RDBStorage(storage)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        warnings.simplefilter("ignore", FutureWarning)  # RetryFailedTrialCallback's rename notice in Optuna >= 4.9
         return optuna.storages.RDBStorage(storage, **_heartbeat_kwargs(heartbeat_interval, grace_period, max_retry))
 
 
@@ -315,13 +348,38 @@ def recover_trial(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> bool:
     return True
 
 
+def fail_heartbeat_stale_trials(study: optuna.Study) -> list[int]:
+    """Fail the RUNNING trials whose heartbeat stopped and run the storage's retry callback; their numbers.
+
+    What Optuna does before each new trial, done at start-up too: a worker that finds the study full (rl_zoo3 counts
+    RUNNING trials towards ``--max-total-trials``) would otherwise leave a dead host's trial RUNNING for ever.
+    """
+    storage = study._storage
+    if not is_heartbeat_enabled(storage):
+        return []
+    callback = storage.get_heartbeat_stale_trial_callback()
+    numbers = []
+    for trial_id in storage._get_stale_trial_ids(study._study_id):
+        try:
+            if not storage.set_trial_state_values(trial_id, state=TrialState.FAIL):
+                continue
+        except UpdateFinishedTrialError:  # another worker failed it (or its owner finished it) first
+            continue
+        trial = storage.get_trial(trial_id)
+        numbers.append(trial.number)
+        if callback is not None:
+            callback(study, copy.deepcopy(trial))
+    return numbers
+
+
 def recover_stale_trials(
     storage: str | optuna.storages.BaseStorage, study_name: str, untagged_grace_s: float = UNTAGGED_GRACE_S
 ) -> list[int]:
-    """Fail the RUNNING trials of dead local workers, re-queue their parameters and return their numbers.
+    """Fail the RUNNING trials of dead workers, re-queue their parameters and return their numbers.
 
-    Safe to run from several workers at once: each stale trial is recovered (and re-queued) exactly once. Trials of
-    other hosts are left alone; an RDB storage from :func:`open_storage` covers them with heartbeats.
+    With heartbeats (RDB storages from :func:`open_storage`) a trial whose heartbeat stopped is failed first,
+    whichever host ran it; then trials of dead local workers (pid gone or reused) are failed without waiting for
+    the grace period. Safe to run from several workers at once: each stale trial is failed, and re-queued, once.
     """
     if isinstance(storage, str):
         storage = open_storage(storage)
@@ -329,7 +387,8 @@ def recover_stale_trials(
         study = optuna.load_study(study_name=study_name, storage=storage)
     except KeyError:  # the study does not exist yet
         return []
+    recovered = fail_heartbeat_stale_trials(study)
     if is_heartbeat_enabled(study._storage):
         untagged_grace_s = float("inf")  # untagged trials have heartbeats, Optuna fails them when they stop
     stale = [t for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)) if is_stale(t, untagged_grace_s)]
-    return [trial.number for trial in stale if recover_trial(study, trial)]
+    return recovered + [trial.number for trial in stale if recover_trial(study, trial)]
