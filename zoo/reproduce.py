@@ -1,8 +1,12 @@
-"""Reproduce the paper's results into ``results/``: Fig. 3 (adaptation), Fig. 4 (long-horizon online control), Table 1.
+"""Reproduce the paper's results into a fresh folder: Fig. 3 (adaptation), Fig. 4 (online control), Table 1.
 
     python zoo/reproduce.py --quick      # <= 15 min on 2 cores: 2 seeds, short budgets
     python zoo/reproduce.py --full       # <= 2 h on 2 cores: 5 seeds, 15k steps per algorithm
     python zoo/reproduce.py --smoke --out /tmp/vafn-smoke   # CI: every stage end to end in about a minute
+
+Every run writes to ``runs/reproduce-<mode>-<timestamp>/`` (models and logs; figures and SUMMARY.md in its
+``results/``) unless ``--work`` / ``--out`` say otherwise; the committed ``results/`` is only written with
+``--overwrite-results``.
 
 1. **Fig. 3**: MAML-SAC, MAAC, MAPPO, MADDPG and MTSAC each train through ``zoo/train.py`` (their
    ``hyperparams/<algo>.yml``) for the *same* number of env steps per seed, then adapt to held-out test instructions
@@ -239,8 +243,9 @@ def plot_fig3(aggregates: dict[str, dict[str, Aggregate]], mode: Mode, path: Pat
     axes[0].legend(fontsize=8)
     seeds = ",".join(map(str, mode.seeds))
     fig.suptitle(
-        f"Fig. 3 ({mode.name}): adaptation on {mode.n_tasks} held-out test instructions of {mode.env_id} "
-        f"(length 1-{mode.max_length}); {mode.timesteps} training steps per algorithm, seeds {seeds}, "
+        f"Fig. 3 ({mode.name}): adaptation on {_plural(mode.n_tasks, 'held-out test instruction')} of {mode.env_id} "
+        f"(length {_lengths(mode.max_length)}); {mode.timesteps} training steps per algorithm, "
+        f"{'seed' if len(mode.seeds) == 1 else 'seeds'} {seeds}, "
         f"{mode.n_support} support steps; mean ± 95% CI over seeds", fontsize=9,
     )
     fig.tight_layout()
@@ -396,6 +401,16 @@ def _git(*args: str) -> str:
         return "unknown"
 
 
+def _plural(count: int, word: str) -> str:
+    """``1 task``, ``3 tasks``."""
+    return f"{count} {word}{'' if count == 1 else 's'}"
+
+
+def _lengths(max_length: int) -> str:
+    """``1`` or ``1-3``: the instruction lengths of a mode."""
+    return "1" if max_length == 1 else f"1-{max_length}"
+
+
 def _at_k(aggregates: dict[str, dict[str, Aggregate]], metric: str, algo: str, k: int) -> str:
     agg = aggregates[metric].get(algo)
     if agg is None or k not in agg.x:
@@ -414,7 +429,7 @@ def write_summary(mode: Mode, jobs: list[Job], aggregates: dict[str, dict[str, A
     lines = [
         f"# Reproduction summary ({mode.name} mode)", "",
         f"Command: `python zoo/reproduce.py --{mode.name}` · commit `{_git('rev-parse', '--short', 'HEAD')}`{dirty} · "
-        f"seeds {list(mode.seeds)} · "
+        f"{'seed' if len(mode.seeds) == 1 else 'seeds'} {list(mode.seeds)} · "
         + ("**resumed** (`--resume`): the models were trained by an earlier run of the same mode; per-job times below "
            "include their recorded training time, the wall times in this line cover only this run · "
            if times["resumed"] else "")
@@ -427,28 +442,26 @@ def write_summary(mode: Mode, jobs: list[Job], aggregates: dict[str, dict[str, A
         "",
         "## Fig. 3: adaptation on held-out instructions (`fig3_adaptation.png`, `fig3_adaptation.csv`)", "",
         f"Paper: {PAPER_FIG3}", "",
-        f"Ours: {mode.env_id}, instructions of length 1-{mode.max_length} from the *test* split "
-        f"({mode.n_tasks} tasks), "
+        f"Ours: {mode.env_id}, instructions of length {_lengths(mode.max_length)} from the *test* split "
+        f"({_plural(mode.n_tasks, 'task')}), "
         f"{mode.timesteps} training steps per algorithm and seed (equal budgets), {mode.n_support} support steps, "
-        f"mean [95% CI] over seeds {list(mode.seeds)}.", "",
-        f"| algorithm | success K=0 | success K={k_mid} | success K={k_max} | collision K={k_max} | return K=0 | "
-        f"return K={k_max} | train wall (s) |",
-        "|---|---|---|---|---|---|---|---|",
+        f"mean [95% CI] over {_plural(len(mode.seeds), 'seed')} {list(mode.seeds)}.", "",
     ]
+    # One column per distinct (metric, K): with K in (0, 1, 2) the "K=20" column would repeat K=2's header.
+    columns = [("success_rate", k) for k in dict.fromkeys((0, k_mid, k_max))]
+    columns += [("collision_rate", k_max), ("return_mean", 0), ("return_mean", k_max)]
+    names = {"success_rate": "success", "collision_rate": "collision", "return_mean": "return"}
+    lines += ["| algorithm | " + " | ".join(f"{names[m]} K={k}" for m, k in columns) + " | train wall (s) |",
+              "|---" * (len(columns) + 2) + "|"]
     for algo in mode.algos:
         algo_jobs = [j for j in jobs if j.algo == algo]
         wall = np.mean([j.wall_s for j in algo_jobs]) if algo_jobs else float("nan")
         failed = [f"seed {j.seed}: {j.error}" for j in algo_jobs if j.error]
         if failed:
-            lines.append(f"| {algo} | FAILED: {'; '.join(failed)} | | | | | | {wall:.0f} |")
+            lines.append(f"| {algo} | FAILED: {'; '.join(failed)} |" + " |" * (len(columns) - 1) + f" {wall:.0f} |")
             continue
-        lines.append(
-            f"| {algo} | {_at_k(aggregates, 'success_rate', algo, 0)} | "
-            f"{_at_k(aggregates, 'success_rate', algo, k_mid)} | "
-            f"{_at_k(aggregates, 'success_rate', algo, k_max)} | {_at_k(aggregates, 'collision_rate', algo, k_max)} | "
-            f"{_at_k(aggregates, 'return_mean', algo, 0)} | {_at_k(aggregates, 'return_mean', algo, k_max)} | "
-            f"{wall:.0f} |"
-        )
+        cells = " | ".join(_at_k(aggregates, m, algo, k) for m, k in columns)
+        lines.append(f"| {algo} | {cells} | {wall:.0f} |")
     success = aggregates["success_rate"]
     best = max((success[a].mean.max(), a) for a in success) if success else (0.0, "none")
     lines += ["", _fig3_verdict(best, aggregates, mode), ""]
@@ -481,7 +494,7 @@ def write_summary(mode: Mode, jobs: list[Job], aggregates: dict[str, dict[str, A
     if mode.name != "full":
         lines += ["", f"These are {mode.name}-mode numbers (short budgets, fewer seeds/items); run `--full` "
                   f"({len(MODES['full'].seeds)} seeds, {MODES['full'].timesteps} steps per algorithm, "
-                  f"{MODES['full'].n_tasks} tasks) for the comparison the paper makes."]
+                  f"{_plural(MODES['full'].n_tasks, 'task')}) for the comparison the paper makes."]
     path = out / "SUMMARY.md"
     path.write_text("\n".join(lines) + "\n")
     return path
@@ -504,13 +517,18 @@ def _fig3_verdict(best: tuple[float, str], aggregates: dict[str, dict[str, Aggre
 
 def main(argv: list[str] | None = None) -> Path:
     """Command-line entry point; returns the path of SUMMARY.md (or of the results folder with ``--fig4-only``)."""
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     group = parser.add_mutually_exclusive_group(required=True)
     for name in MODES:
         group.add_argument(f"--{name}", dest="mode", action="store_const", const=name, help=f"{name} mode")
     parser.add_argument("--out", type=Path, default=None,
-                        help="results folder (default: results/, smoke: <work>/results)")
-    parser.add_argument("--work", type=Path, default=None, help="models and logs (default: runs/reproduce-<mode>)")
+                        help="figures, tables and SUMMARY.md (None: <work>/results)")
+    parser.add_argument("--work", type=Path, default=None,
+                        help="models and logs (None: a fresh runs/reproduce-<mode>-<timestamp>)")
+    parser.add_argument("--overwrite-results", action="store_true",
+                        help="allow --out to be the committed results/ folder (maintainers refreshing it)")
     parser.add_argument("--jobs", type=int, default=min(os.cpu_count() or 1, 16), help="parallel training processes")
     parser.add_argument("--algos", nargs="+", default=None, choices=FIG3_ALGOS, help="subset of Fig. 3's algorithms")
     parser.add_argument("--skip-table1", action="store_true", help="do not run the multimedia benchmark")
@@ -525,9 +543,14 @@ def main(argv: list[str] | None = None) -> Path:
         mode = replace(mode, algos=tuple(args.algos))
     if args.jobs < 1:
         parser.error("--jobs must be >= 1")
-    work = args.work or REPO_ROOT / "runs" / f"reproduce-{mode.name}"
-    out = args.out or (work / "results" if mode.name == "smoke" else REPO_ROOT / "results")
+    if args.resume and args.work is None:
+        parser.error("--resume needs --work: the folder of the earlier run whose models to reuse")
+    work = args.work or REPO_ROOT / "runs" / f"reproduce-{mode.name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    out = args.out or work / "results"
+    if out.resolve() == (REPO_ROOT / "results").resolve() and not args.overwrite_results:
+        parser.error(f"--out {out} is the committed reference results; pass --overwrite-results to replace them")
     out.mkdir(parents=True, exist_ok=True)
+    print(f"writing models and logs to {work}, results to {out}")
     if args.fig4_only:
         for name, log in fig4(mode, out).items():
             outcomes = ", ".join(f"[{e['instruction']}] {e['outcome']}, {e['collisions']} contact steps" for e in log)
