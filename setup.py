@@ -10,9 +10,10 @@ EXTRAS = {
         "librosa>=0.10", "soundfile>=0.12", "opencv-python-headless>=4.8", "scikit-learn>=1.3", "soxr>=0.3",
         "espeakng-loader>=0.2",
     ],
+    # optuna >= 4: the journal-file storage (the tuning default); psycopg2-binary: PostgreSQL studies (docs/tuning.md).
     "zoo": [
-        "rl_zoo3>=2.3", "optuna>=3.5", "tensorboard>=2.14", "matplotlib>=3.7", "pandas>=2.0", "scipy>=1.10",
-        "imageio>=2.30",
+        "rl_zoo3>=2.3", "optuna>=4.0,<6", "tensorboard>=2.14", "matplotlib>=3.7", "pandas>=2.0", "scipy>=1.10",
+        "imageio>=2.30", "psycopg2-binary>=2.9",
     ],
     "pettingzoo": ["pettingzoo>=1.24"],
     "bench": ["panda-gym>=3.0.7"],
