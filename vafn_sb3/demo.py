@@ -189,7 +189,8 @@ def builtin_example(folder: Path, speech: bool | None = None) -> list[DemoInput]
             from vafn_media.speech import ESPEAK_SAMPLE_RATE, phrase, speak
 
             path = folder / f"{stem}.wav"
-            soundfile.write(path, speak(arms, template=2), ESPEAK_SAMPLE_RATE)
+            silence = np.zeros(int(0.3 * ESPEAK_SAMPLE_RATE), np.float32)  # a recording starts and ends quiet
+            soundfile.write(path, np.concatenate([silence, speak(arms, template=2), silence]), ESPEAK_SAMPLE_RATE)
             inputs.append(DemoInput("audio", str(path), f"{path.name} (\"{phrase(arms, 2)}\")"))
         elif kind == "image":
             path = folder / f"{stem}.png"
