@@ -50,10 +50,11 @@ def _worker(study_name: str, folder: Path, seed: int) -> subprocess.Popen:
     return subprocess.Popen(command, cwd=folder, env=SUBPROCESS_ENV, stdout=log, stderr=subprocess.STDOUT)
 
 
-def _running_trial_of(study: optuna.Study, pid: int) -> optuna.trial.FrozenTrial | None:
+def _training_trial_of(study: optuna.Study, pid: int) -> optuna.trial.FrozenTrial | None:
+    """The RUNNING trial of worker ``pid`` once all its parameters are sampled (it is building or training SAC)."""
     for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
         tag = WorkerTag.parse(str(trial.user_attrs.get(WORKER_ATTR, "")))
-        if tag is not None and tag.pid == pid:
+        if tag is not None and tag.pid == pid and "learning_starts" in trial.params:  # the sampler's last parameter
             return trial
     return None
 
@@ -81,10 +82,9 @@ def test_two_workers_one_killed_and_restarted_complete_the_study_without_loss(tm
         while victim is None:
             assert time.monotonic() < deadline, "worker 1 never started a trial"
             assert killed.poll() is None, f"worker 1 exited early:\n{(tmp_path / 'worker_1.txt').read_text()[-3000:]}"
-            victim = _running_trial_of(study, killed.pid)
-            time.sleep(0.2)
-        time.sleep(1.0)  # mid-trial: heartbeats have been recorded
-        killed.send_signal(signal.SIGKILL)
+            victim = _training_trial_of(study, killed.pid)
+            time.sleep(0.1)
+        killed.send_signal(signal.SIGKILL)  # mid-trial: sampled, heartbeat running, model not yet evaluated
         killed.wait()
         # Restart only once the heartbeat is stale, so the heartbeat (not the local pid check) recovers the trial.
         time.sleep(HEARTBEAT_GRACE_S + 1.5)
@@ -102,8 +102,7 @@ def test_two_workers_one_killed_and_restarted_complete_the_study_without_loss(tm
         retries = [t for t in trials if t.user_attrs.get(RETRY_OF_ATTR) == victim.number]
         assert len(retries) == 1, f"the killed trial was retried {len(retries)} times"
         retry = retries[0]
-        failed = trials[victim.number]
-        assert failed.params and retry.state == TrialState.COMPLETE and retry.params == failed.params
+        assert retry.state == TrialState.COMPLETE and retry.params == trials[victim.number].params == victim.params
         assert retry.system_attrs.get("failed_trial") == victim.number, "not recovered by Optuna's heartbeat"
         params = [tuple(sorted(t.params.items())) for t in complete]
         assert len(set(params)) == TOTAL_TRIALS, "a trial ran twice"
