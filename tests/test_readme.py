@@ -12,16 +12,22 @@ Rules (issue 14):
   network; those three are checked to be present and consistent with ``.ci/run`` instead.
 - The ```python blocks run in order in one interpreter; both policies of the quick start must succeed without a
   collision, as the README's comment says.
+- docs/zoo.md's commands (several minutes even shortened) run only with ``VAFN_DOCS_COMMANDS=1``, shortened by the
+  rules in ``shorten_zoo_command``; the commands that need a database server, a browser or an existing trial are
+  listed in ``ZOO_NOT_RUN``.
 """
 
 from __future__ import annotations
 
 import os
 import re
+import shlex
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -159,3 +165,36 @@ def test_readme_python_blocks_run(tmp_path):
     outcomes = [line.split()[-2:] for line in proc.stdout.splitlines() if set(line.split()[-2:]) <= flags
                 and len(line.split()) >= 3]
     assert outcomes == [["True", "False"], ["True", "False"]], proc.stdout  # success, no collision, both policies
+
+
+ZOO_NOT_RUN = ("pip install", "optuna-dashboard", "optuna create-study", "postgresql", "mysql", "--trial-id")
+
+
+def shorten_zoo_command(command: str) -> str:
+    """docs/zoo.md command -> a short run of it: few env steps, one trial, two test episodes, capped recordings."""
+    if "zoo/train.py" in command:
+        if "-optimize" in command:
+            command = re.sub(r"--n-trials \d+", "--n-trials 1", command)
+            return command + " -n 200 --n-evaluations 1 --eval-episodes 1"
+        return command + " -n 300 --eval-freq 150 --eval-episodes 1"
+    if "zoo/enjoy.py" in command:
+        command = re.sub(r"--n-test \d+", "--n-test 2", command)
+        return command + " -n 40" if "--record" in command else command
+    return command
+
+
+@pytest.mark.skipif(os.environ.get("VAFN_DOCS_COMMANDS") != "1", reason="several minutes: set VAFN_DOCS_COMMANDS=1")
+def test_docs_zoo_commands_run(tmp_path):
+    work = scratch(tmp_path)
+    failures, timings = [], []
+    for command in bash_commands((ROOT / "docs" / "zoo.md").read_text(encoding="utf-8")):
+        if any(marker in command for marker in ZOO_NOT_RUN) or shlex.split(command)[0] != "python":
+            continue
+        run = shorten_zoo_command(command)
+        start = time.perf_counter()
+        proc = subprocess.run(["bash", "-c", run], cwd=work, env=env(), capture_output=True, text=True, timeout=600)
+        timings.append(f"{time.perf_counter() - start:5.1f} s  {run}")
+        if proc.returncode != 0:
+            failures.append(f"exit {proc.returncode}: {run}\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
+    print("\n".join(timings))
+    assert not failures, "docs/zoo.md commands failed:\n\n" + "\n\n".join(failures)
