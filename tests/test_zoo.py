@@ -284,7 +284,7 @@ def test_reproduce_smoke_writes_every_artefact(tmp_path: Path) -> None:
     assert "FAILED" not in summary and "Not produced" not in summary, summary
     assert "| maml_sac |" in summary and "| scripted |" in summary and "Paper:" in summary
     for header in (line for line in summary.splitlines() if line.startswith("| algorithm |")):
-        cells = [cell.strip() for cell in header.split("|")]
+        cells = [cell.strip() for cell in header.strip("|").split("|")]
         assert len(cells) == len(set(cells)), f"duplicated column: {header}"
     assert "(1 task)" in summary and "1 tasks" not in summary and "seed [0]" in summary
 
