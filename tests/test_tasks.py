@@ -166,6 +166,25 @@ def test_reward_config_from_kwargs():
             RewardConfig(progress_weight=bad)
 
 
+def test_precision_term_rewards_the_last_centimetres_most():
+    layout = ArmLayout()
+    here = {arm: layout.home_point(arm) for arm in layout.arm_ids}
+    target = layout.default_target(1)
+    task = InstructionTask(layout, reward=RewardConfig(progress_weight=0.0, waypoint_bonus=0.0, precision_weight=1.0))
+    task.start(resolve("default", "1"))
+    direction = (here[1] - target) / np.linalg.norm(here[1] - target)
+
+    def at(distance: float) -> dict:
+        return {**here, 1: target + distance * direction}
+
+    far = task.step(at(0.30), at(0.28), contact=False, too_close=False)
+    near = task.step(at(0.08), at(0.06), contact=False, too_close=False)
+    assert np.isclose(near, np.log(0.09 / 0.07)) and np.isclose(far, np.log(0.31 / 0.29))
+    assert near > 3 * far  # the same 2 cm are worth more close to the target
+    with pytest.raises(ValueError, match="precision_scale"):
+        RewardConfig(precision_scale=0.0)
+
+
 def test_collision_penalty_is_charged_once_and_sparse_reward():
     layout = ArmLayout()
     here = {arm: layout.home_point(arm) for arm in layout.arm_ids}

@@ -50,15 +50,19 @@ def resolve_targets(
 class RewardConfig:
     """Weights of the dense reward (every field is an env kwarg through ``reward_kwargs=dict(...)``).
 
-    Per step: ``progress_weight`` × decrease of the active arm's distance to its target, ``+ waypoint_bonus`` per
-    reached waypoint, ``home_progress_weight`` × decrease of every inactive arm's distance to home (only where the
-    policy moves inactive arms), ``- hold_weight`` × mean distance of inactive arms from home (a level penalty: off by
-    default, because the learner cannot assign it to the right arm), ``- collision_penalty`` once, on the episode's
-    first arm-arm contact, and ``- proximity_penalty`` per step with arms closer than the env's ``safety_margin``.
+    Per step: ``progress_weight`` × decrease of the active arm's distance to its target, ``precision_weight`` × decrease
+    of its log-distance ``log(d + precision_scale)`` (steep near the target, so the last centimetres count as much as
+    the first decimetres), ``+ waypoint_bonus`` per reached waypoint, ``home_progress_weight`` × decrease of every
+    inactive arm's distance to home (only where the policy moves inactive arms), ``- hold_weight`` × mean distance of
+    inactive arms from home (a level penalty: off by default, because the learner cannot assign it to the right arm),
+    ``- collision_penalty`` once, on the episode's first arm-arm contact, and ``- proximity_penalty`` per step with
+    arms closer than the env's ``safety_margin``.
     The sparse reward is ``+1`` per reached waypoint and ``-1`` on the first contact.
     """
 
     progress_weight: float = 10.0
+    precision_weight: float = 0.0
+    precision_scale: float = 0.01
     waypoint_bonus: float = 1.0
     home_progress_weight: float = 10.0
     hold_weight: float = 0.0
@@ -70,6 +74,8 @@ class RewardConfig:
             value = getattr(self, item.name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
                 raise ValueError(f"reward weight {item.name} must be a finite number, got {value!r}")
+        if self.precision_scale <= 0:
+            raise ValueError(f"reward weight precision_scale must be > 0, got {self.precision_scale!r}")
 
     @classmethod
     def from_kwargs(cls, kwargs: Mapping[str, Any] | None) -> RewardConfig:
@@ -168,19 +174,24 @@ class InstructionTask:
         active = self.active_arm
         first_contact = contact and not self.collided
         self.collided |= contact
-        reached, progress = 0, 0.0
+        reached, progress, log_progress = 0, 0.0, 0.0
+        weights = self.reward_config
         if active is not None:
             target = self.current_target(active)
+            distance_before = float(np.linalg.norm(before[active] - target))
             distance_after = float(np.linalg.norm(after[active] - target))
-            progress = float(np.linalg.norm(before[active] - target)) - distance_after
+            progress = distance_before - distance_after
+            log_progress = np.log(distance_before + weights.precision_scale) - np.log(
+                distance_after + weights.precision_scale
+            )
             if distance_after < SUCCESS_TOLERANCE:
                 reached = 1
                 self.waypoint_index += 1
         if self.reward_type == "sparse":
             return float(reached) - float(first_contact)
-        weights = self.reward_config
         inactive = [arm for arm in self.layout.arm_ids if arm != active]
         reward = weights.progress_weight * progress + weights.waypoint_bonus * reached
+        reward += weights.precision_weight * float(log_progress)
         if self.inactive_arms == "policy" and weights.home_progress_weight and inactive:
             home_progress = [
                 np.linalg.norm(before[arm] - self.homes[arm]) - np.linalg.norm(after[arm] - self.homes[arm])
