@@ -61,6 +61,14 @@ def train_one(args: argparse.Namespace, seed: int, benchmark: InstructionBenchma
     return rows, model
 
 
+def read_curves(path: Path, exclude: list[int]) -> list[dict]:
+    """Rows of an existing curves file (numbers parsed), without the seeds in ``exclude``."""
+    with path.open(newline="") as handle:
+        rows = [{k: (float(v) if k not in ("seed", "timesteps", "n_tasks") else int(v)) for k, v in row.items()}
+                for row in csv.DictReader(handle)]
+    return [row for row in rows if row["seed"] not in exclude]
+
+
 def summarise(rows: list[dict], seeds: list[int]) -> dict:
     """Final metrics over seeds (mean ± 95 % Student-t CI) and steps to the first evaluation at >= 0.95 success."""
     finals = [max((r for r in rows if r["seed"] == s), key=lambda r: r["timesteps"]) for s in seeds]
@@ -91,24 +99,28 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=REPO_ROOT / "results" / "learning")
     parser.add_argument("--tag", default="", help="suffix of the output files")
     parser.add_argument("--save", type=Path, default=None, help="folder for each seed's final model")
+    parser.add_argument("--append", action="store_true",
+                        help="keep the other seeds' rows of an existing curves file; the summary covers all its seeds")
     args = parser.parse_args()
     torch.set_num_threads(1)
     register_algorithms()
     benchmark = InstructionBenchmark(args.env, 1, 10, n_test=args.n_test, env_kwargs=args.env_kwargs)
     name = f"{args.algo}_{args.env.split('/')[-1]}{args.tag}"
     args.out.mkdir(parents=True, exist_ok=True)
-    rows = []
+    curves = args.out / f"{name}_curves.csv"
+    rows = read_curves(curves, exclude=args.seeds) if args.append and curves.is_file() else []
     for seed in args.seeds:
         seed_rows, model = train_one(args, seed, benchmark)
         rows.extend(seed_rows)
         if args.save is not None:
             model.save(args.save / f"{name}_seed{seed}")
-        with (args.out / f"{name}_curves.csv").open("w", newline="") as handle:  # rewritten after every seed
+        with curves.open("w", newline="") as handle:  # rewritten after every seed
             writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
             writer.writeheader()
             writer.writerows(rows)
+    seeds = sorted({row["seed"] for row in rows})
     summary = {"algo": args.algo, "env": args.env, "env_kwargs": args.env_kwargs, "hyperparams": args.hyperparams,
-               "train_max_length": args.train_max_length, "command": " ".join(sys.argv), **summarise(rows, args.seeds)}
+               "train_max_length": args.train_max_length, "command": " ".join(sys.argv), **summarise(rows, seeds)}
     (args.out / f"{name}_summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary, indent=2))
 

@@ -263,7 +263,8 @@ def test_reward_kwargs():
     with pytest.raises(TypeError, match="reward_kwargs must be a dict"):
         gym.make(REACH, reward_kwargs=[("progress_weight", 1.0)])
     totals = {}
-    for name, kwargs in [("default", None), ("bonus only", {"progress_weight": 0.0, "waypoint_bonus": 2.5})]:
+    bonus_only = {"progress_weight": 0.0, "precision_weight": 0.0, "waypoint_bonus": 2.5}
+    for name, kwargs in [("default", None), ("bonus only", bonus_only)]:
         env = gym.make(REACH, instruction="1,2", reward_kwargs=kwargs)
         totals[name] = run_episode(ScriptedController.for_env(env), env, seed=0)
         env.close()
@@ -289,7 +290,8 @@ def drive_to_centre(env: gym.Env, steps: int) -> tuple[list[float], list[dict]]:
 
 def test_collision_penalty_is_charged_once_per_episode():
     weights = dict(
-        progress_weight=0.0, home_progress_weight=0.0, proximity_penalty=0.0, waypoint_bonus=0.0, collision_penalty=3.0
+        progress_weight=0.0, precision_weight=0.0, home_progress_weight=0.0, proximity_penalty=0.0, waypoint_bonus=0.0,
+        collision_penalty=3.0,
     )
     unreachable = Instruction.from_arms([1], [[0.0, 0.0, 0.9]])  # far above the point every arm is pushed to
     env = gym.make(REACH, instruction=unreachable, inactive_arms="policy", reward_kwargs=weights)

@@ -150,7 +150,8 @@ def test_task_phases_and_current_targets():
     reward = task.step(here, there, contact=False, too_close=False)
     assert task.waypoint_index == 1 and task.active_arm == 3
     progress = np.linalg.norm(layout.home_point(2) - layout.default_target(2))
-    assert np.isclose(reward, 10.0 * progress + 1.0)
+    precision = np.log(progress + 0.01) - np.log(0.01)  # the default precision term, from `progress` to 0
+    assert np.isclose(reward, 10.0 * progress + precision + 1.0)
 
 
 # --- RewardConfig ---

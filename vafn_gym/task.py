@@ -61,7 +61,7 @@ class RewardConfig:
     """
 
     progress_weight: float = 10.0
-    precision_weight: float = 0.0
+    precision_weight: float = 1.0
     precision_scale: float = 0.01
     waypoint_bonus: float = 1.0
     home_progress_weight: float = 10.0
