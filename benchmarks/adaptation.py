@@ -119,8 +119,10 @@ def write_csv(rows: list[dict], path: Path) -> None:
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """Command-line flags; training flags left unset take ``hyperparams/maml_sac.yml``'s value."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--env", default="VAFN/ThreeArmReachHidden-v1")
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    parser.add_argument("--env", default="VAFN/ThreeArmReachHidden-v1", help="env ID")
     parser.add_argument("--env-kwargs", type=json.loads, default={}, help='JSON, e.g. \'{"n_arms": 4}\'')
     parser.add_argument("--max-length", type=int, default=2, help="longest instruction (training and test)")
     parser.add_argument("--model", type=Path, help="evaluate this saved MAMLSAC instead of training one")
@@ -128,20 +130,20 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--timesteps", type=int, help="training env steps (warm-up included)")
     parser.add_argument("--warmup-steps", type=int, help="plain multi-task SAC steps first")
     parser.add_argument("--policy", help="policy alias (SharedAgentPolicy or MlpPolicy)")
-    parser.add_argument("--net-arch", type=int, nargs="+")
-    parser.add_argument("--n-envs", type=int, default=1)
+    parser.add_argument("--net-arch", type=int, nargs="+", help="hidden layer sizes (default: the YAML's)")
+    parser.add_argument("--n-envs", type=int, default=1, help="training envs")
     parser.add_argument("--n-support", type=int, help="support transitions (meta-training and evaluation)")
     parser.add_argument("--inner-steps", type=int, help="K during meta-training")
-    parser.add_argument("--outer-steps", type=int)
-    parser.add_argument("--second-order", action="store_true")
+    parser.add_argument("--outer-steps", type=int, help="meta-gradient steps per meta-iteration")
+    parser.add_argument("--second-order", action="store_true", help="second-order MAML")
     parser.add_argument("--learning-rate", type=float, help="outer (and warm-up) Adam learning rate")
-    parser.add_argument("--gamma", type=float)
+    parser.add_argument("--gamma", type=float, help="discount factor")
     parser.add_argument("--ent-coef", help="SAC's ent_coef: 'auto', 'auto_0.1' or a number")
     parser.add_argument("--n-tasks", type=int, default=20, help="held-out test instructions")
     parser.add_argument("--k", type=int, nargs="+", default=DEFAULT_K, help="adaptation steps to evaluate")
-    parser.add_argument("--n-eval-episodes", type=int, default=3)
+    parser.add_argument("--n-eval-episodes", type=int, default=3, help="episodes per task and K")
     parser.add_argument("--seed", type=int, default=0, help="training, support and evaluation-episode seed")
-    parser.add_argument("--out", type=Path, default=Path("results/maml_sac_adaptation"))
+    parser.add_argument("--out", type=Path, default=Path("results/maml_sac_adaptation"), help="output folder")
     return parser.parse_args(argv)
 
 

@@ -28,13 +28,15 @@ from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 
 def main() -> None:
     """Export, reload the exported file and evaluate it; write the metadata."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--algo", required=True)
-    parser.add_argument("--env", default="VAFN/ThreeArmReach-v1")
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    parser.add_argument("--algo", required=True, help="zoo key of the algorithm (required; default: none)")
+    parser.add_argument("--env", default="VAFN/ThreeArmReach-v1", help="env ID the model was trained on")
     parser.add_argument("--model", type=Path, required=True, help="an SB3 zip saved by benchmarks/learning.py --save")
     parser.add_argument("--summary", type=Path, required=True, help="the learning summary the model came from")
     parser.add_argument("--seed", type=int, default=0, help="which seed of the summary the model is")
-    parser.add_argument("--n-test", type=int, default=100)
+    parser.add_argument("--n-test", type=int, default=100, help="held-out instructions of the stored evaluation")
     args = parser.parse_args()
     torch.set_num_threads(1)
     register_algorithms()

@@ -85,18 +85,20 @@ def summarise(rows: list[dict], seeds: list[int]) -> dict:
 
 def main() -> None:
     """Parse arguments, train every seed, write the curves and the summary."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--algo", default="sac")
-    parser.add_argument("--env", default="VAFN/ThreeArmReach-v1")
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    parser.add_argument("--algo", default="sac", help="zoo key of the algorithm (sac, mtsac, maml_sac, ...)")
+    parser.add_argument("--env", default="VAFN/ThreeArmReach-v1", help="env ID")
     parser.add_argument("--env-kwargs", type=json.loads, default={}, help='JSON, e.g. \'{"inactive_arms": "policy"}\'')
     parser.add_argument("--hyperparams", type=json.loads, default={}, help="JSON overrides of the YAML values")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="training seeds")
     parser.add_argument("--steps", type=int, default=None, help="env steps per seed (default: the YAML's n_timesteps)")
     parser.add_argument("--train-max-length", type=int, default=3, help="longest training instruction")
-    parser.add_argument("--eval-every", type=int, default=10_000)
+    parser.add_argument("--eval-every", type=int, default=10_000, help="env steps between evaluations")
     parser.add_argument("--n-eval", type=int, default=30, help="test instructions per intermediate evaluation")
     parser.add_argument("--n-test", type=int, default=100, help="test instructions of the final evaluation")
-    parser.add_argument("--out", type=Path, default=REPO_ROOT / "results" / "learning")
+    parser.add_argument("--out", type=Path, default=REPO_ROOT / "results" / "learning", help="output folder")
     parser.add_argument("--tag", default="", help="suffix of the output files")
     parser.add_argument("--save", type=Path, default=None, help="folder for each seed's final model")
     parser.add_argument("--append", action="store_true",

@@ -29,10 +29,12 @@ SETTINGS = (
 
 def main() -> None:
     """Evaluate the packaged policy on every setting; print and write a Markdown table."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--algo", default="sac")
-    parser.add_argument("--n-test", type=int, default=50)
-    parser.add_argument("--out", type=Path, default=REPO_ROOT / "results" / "learning")
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    parser.add_argument("--algo", default="sac", help="algorithm of the packaged policy")
+    parser.add_argument("--n-test", type=int, default=50, help="held-out instructions per setting")
+    parser.add_argument("--out", type=Path, default=REPO_ROOT / "results" / "learning", help="output folder")
     args = parser.parse_args()
     torch.set_num_threads(1)
     model = load_pretrained(args.algo)
