@@ -42,7 +42,7 @@ ALGORITHMS = {
         3072,
     ),
     # Two critic updates per actor update (TD3's delayed policy update): with MADDPG's 1:1 schedule the deterministic
-    # actors saturate within this budget (seed 0: return -46 vs random -4); see the README, "Baselines".
+    # actors saturate within this budget (seed 0: return -46 vs random -4); see docs/algorithms.md, "Baselines".
     "MADDPG": (lambda env: MADDPG(env=env, policy_delay=2, policy_kwargs=dict(net_arch=TINY), **OFF_POLICY_FAST), 3000),
     "MAAC": (
         lambda env: MAAC(env=env, policy_kwargs=dict(net_arch=dict(pi=TINY, qf=[32])), **SAC_FAST),
@@ -361,7 +361,7 @@ def test_algorithms_read_the_layout_from_policy_kwargs():
 
 #: Known gaps, measured: on the v1 env (inactive arms held) MADDPG's CI-sized run does not beat a uniform-random policy
 #: (return -3.70 vs 0.32 at 3,000 steps; -0.04 at 5,000; -0.51 with lr 3e-4). Strict: the test fails once it does.
-SHORT_RUN_KNOWN_FAILURES = {"MADDPG": "MADDPG's 3,000-step run does not beat random on the v1 env (README)"}
+SHORT_RUN_KNOWN_FAILURES = {"MADDPG": "MADDPG's 3,000-step run does not beat random on the v1 env (docs/results.md)"}
 
 
 def test_short_run_beats_random_policy(trained, request):

@@ -22,7 +22,7 @@ from vafn_gym.robots import KUKA_IIWA, PANDA, ROBOTS, XARM6, RobotSpec
 from vafn_gym.task import INACTIVE_ARM_MODES, TARGET_MODES, InstructionTask, RewardConfig
 from vafn_gym.tasks import SPLITS, TaskSampler
 
-#: ID -> (entry point, default kwargs). The README's "Environments" table documents each one.
+#: ID -> (entry point, default kwargs). docs/environments.md documents each one.
 _REGISTRY = {
     "VAFN/ThreeArmReach-v1": ("vafn_gym.envs:MultiArmEnv", {"n_arms": 3, "targets": "default"}),
     "VAFN/ThreeArmReachHidden-v1": ("vafn_gym.envs:MultiArmEnv", {"n_arms": 3, "targets": "per_arm"}),
