@@ -10,8 +10,8 @@ import torch
 from vafn_media.constants import IMAGE_HEIGHT, MAX_IMAGE_WIDTH, MIN_IMAGE_WIDTH
 from vafn_media.dataset import INK_LEVELS, TrainingData
 
-#: Augmentation settings (training only).
-NOISE_PROBABILITY: float = 0.5
+#: Augmentation settings (training only): probability of a degraded cached copy instead of the clean utterance.
+NOISE_PROBABILITY: float = 0.75
 SPEC_MASK_PROBABILITY: float = 0.5
 MAX_FREQ_MASK: int = 6
 MAX_TIME_MASK: int = 8
@@ -78,7 +78,11 @@ def make_batch(data: TrainingData, indices: np.ndarray, rng: np.random.Generator
     audio, strips = [], []
     for i in indices:
         noisy = rng.random() < NOISE_PROBABILITY if rng is not None else corrupted
-        features = (data.noisy_audio[i] if noisy else data.clean_audio[i]).astype(np.float32)
+        if noisy:
+            copy = int(rng.integers(len(data.augmented_audio))) if rng is not None else 0
+            features = data.augmented_audio[copy][i].astype(np.float32)
+        else:
+            features = data.clean_audio[i].astype(np.float32)
         use_mask = rng.random() < CUTOUT_PROBABILITY if rng is not None else corrupted
         strip = (data.masked[i] if use_mask else data.clean[i]).astype(np.float32) / INK_LEVELS
         if rng is not None:

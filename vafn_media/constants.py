@@ -9,9 +9,10 @@ from vafn_gym.constants import MAX_INSTRUCTION_LENGTH
 NUM_ARMS: int = 3
 
 # --- audio ---
-#: Sample rate of stored training audio (Hz); inference accepts any rate in [MIN_SAMPLE_RATE, MAX_SAMPLE_RATE].
+#: Rate every clip is resampled to before its features (Hz); inference accepts any rate in
+#: [MIN_SAMPLE_RATE, MAX_SAMPLE_RATE] (8 kHz telephone audio up to 192 kHz studio audio).
 SAMPLE_RATE: int = 16_000
-MIN_SAMPLE_RATE: int = 16_000
+MIN_SAMPLE_RATE: int = 8_000
 MAX_SAMPLE_RATE: int = 192_000
 #: STFT window and hop, in seconds (converted to samples per input rate so no resampling is needed).
 WIN_SECONDS: float = 0.025

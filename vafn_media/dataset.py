@@ -29,8 +29,8 @@ SPLIT_CODES: dict[str, int] = {"train": 0, "test": 1, "heldout": 2}
 SHARD_SIZE: int = 500
 #: Default cache directory for generated training data.
 DEFAULT_CACHE = Path(os.environ.get("VAFN_CACHE", Path.home() / ".cache" / "vafn" / "multimedia"))
-#: SNR range (dB) of the noisy copy of each cached training utterance.
-TRAIN_SNR_RANGE_DB: tuple[float, float] = (5.0, 35.0)
+#: Degraded copies (random :func:`vafn_media.augment.augment` chains) cached per utterance beside the clean one.
+AUGMENTED_COPIES: int = 2
 #: Quantisation of cached strips (ink in [0, 1] stored as uint8).
 INK_LEVELS: float = 255.0
 
@@ -135,32 +135,38 @@ def generate_raw(seed: int, split: str, count: int, difficulty: str | None = Non
 
 
 def _compact_shard(args: tuple[int, str, int, int, str]) -> str:
-    """Render one shard and store training-ready arrays: log-mel features of the clean and of a noisy copy of each
-    utterance (resampled to SAMPLE_RATE), and canonical strips of the clean and of a Cutout copy of each image."""
-    import soxr
+    """Render one shard and store training-ready arrays: log-mel features of the clean utterance (resampled to
+    SAMPLE_RATE) and of AUGMENTED_COPIES degraded copies (speed, silences, room, noise, telephone, gain/clipping), and
+    canonical strips of the clean and of a Cutout copy of each image."""
     import torch
 
-    from vafn_media.corruptions import add_awgn, cutout
+    from vafn_media.augment import augment, resample
+    from vafn_media.corruptions import cutout
     from vafn_media.features import log_mel
     from vafn_media.images import canonical_strip
 
     torch.set_num_threads(1)
     seed, split, start, count, path = args
     raw = _render_range((seed, split, start, count, None))
-    clean_audio, noisy_audio, clean, masked = [], [], [], []
+    audio: list[list[np.ndarray]] = [[] for _ in range(1 + AUGMENTED_COPIES)]
+    clean, masked = [], []
     for index, waveform, image in zip(range(start, start + count), raw.waveforms, raw.images):
         rng = np.random.default_rng([seed, SPLIT_CODES[split], index, 1])
-        wave = soxr.resample(waveform, raw.sample_rate, SAMPLE_RATE).astype(np.float32)
-        clean_audio.append(log_mel(wave, SAMPLE_RATE)[0].numpy().astype(np.float16))
-        noisy = add_awgn(wave, rng.uniform(*TRAIN_SNR_RANGE_DB), rng)
-        noisy_audio.append(log_mel(noisy, SAMPLE_RATE)[0].numpy().astype(np.float16))
+        wave = resample(waveform, raw.sample_rate, SAMPLE_RATE)
+        if wave.size == 0:
+            wave = np.zeros(SAMPLE_RATE // 4, np.float32)
+        copies = [wave] + [augment(wave, rng) for _ in range(AUGMENTED_COPIES)]
+        for store, copy in zip(audio, copies):
+            store.append(log_mel(copy, SAMPLE_RATE)[0].numpy().astype(np.float16))
         clean.append(np.rint(canonical_strip(image) * INK_LEVELS).astype(np.uint8))
         masked.append(np.rint(canonical_strip(cutout(image, rng)) * INK_LEVELS).astype(np.uint8))
+    arrays = {}
+    for k, store in enumerate(audio):
+        arrays[f"audio{k}"] = np.concatenate(store, axis=1)
+        arrays[f"frames{k}"] = np.array([a.shape[1] for a in store], np.int64)
     np.savez(path + ".tmp.npz",
              arms=np.array([list(a) + [0] * (MAX_INSTRUCTION_LENGTH - len(a)) for a in raw.arms], np.int8),
-             lengths=np.array([len(a) for a in raw.arms], np.int8),
-             clean_audio=np.concatenate(clean_audio, axis=1), noisy_audio=np.concatenate(noisy_audio, axis=1),
-             frames=np.array([a.shape[1] for a in clean_audio], np.int64),
+             lengths=np.array([len(a) for a in raw.arms], np.int8), **arrays,
              clean=np.concatenate(clean, axis=1), clean_widths=np.array([c.shape[1] for c in clean], np.int64),
              masked=np.concatenate(masked, axis=1), masked_widths=np.array([m.shape[1] for m in masked], np.int64))
     os.replace(path + ".tmp.npz", path)
@@ -169,17 +175,25 @@ def _compact_shard(args: tuple[int, str, int, int, str]) -> str:
 
 @dataclass
 class TrainingData:
-    """Training-ready arrays of a cached split (ragged arrays stored flat with lengths)."""
+    """Training-ready arrays of a cached split (ragged arrays stored flat with lengths).
+
+    ``clean_audio`` holds the clean utterances' features, ``augmented_audio[k]`` the k-th degraded copy of each.
+    """
 
     arms: np.ndarray
     lengths: np.ndarray
     clean_audio: list[np.ndarray]
-    noisy_audio: list[np.ndarray]
+    augmented_audio: list[list[np.ndarray]]
     clean: list[np.ndarray]
     masked: list[np.ndarray]
 
     def __len__(self) -> int:
         return len(self.lengths)
+
+    @property
+    def noisy_audio(self) -> list[np.ndarray]:
+        """The first degraded copy of every utterance (the "corrupted" evaluation input)."""
+        return self.augmented_audio[0]
 
     @classmethod
     def load(cls, paths: Sequence[str]) -> TrainingData:
@@ -187,17 +201,17 @@ class TrainingData:
 
         :param paths: shard files written by :func:`build_cache`.
         """
-        arms, lengths, clean_audio, noisy_audio, clean, masked = [], [], [], [], [], []
+        arms, lengths, clean, masked = [], [], [], []
+        audio: list[list[np.ndarray]] = [[] for _ in range(1 + AUGMENTED_COPIES)]
         for path in paths:
             with np.load(path) as shard:
                 arms.append(shard["arms"])
                 lengths.append(shard["lengths"])
-                cuts = np.cumsum(shard["frames"])[:-1]
-                clean_audio += np.split(shard["clean_audio"], cuts, axis=1)
-                noisy_audio += np.split(shard["noisy_audio"], cuts, axis=1)
+                for k, store in enumerate(audio):
+                    store += np.split(shard[f"audio{k}"], np.cumsum(shard[f"frames{k}"])[:-1], axis=1)
                 clean += np.split(shard["clean"], np.cumsum(shard["clean_widths"])[:-1], axis=1)
                 masked += np.split(shard["masked"], np.cumsum(shard["masked_widths"])[:-1], axis=1)
-        return cls(np.concatenate(arms), np.concatenate(lengths), clean_audio, noisy_audio, clean, masked)
+        return cls(np.concatenate(arms), np.concatenate(lengths), audio[0], audio[1:], clean, masked)
 
 
 def cache_key(seed: int, split: str, count: int) -> str:
@@ -209,7 +223,8 @@ def cache_key(seed: int, split: str, count: int) -> str:
     """
     here = Path(__file__).parent
     digest = hashlib.sha1()
-    for name in ("dataset.py", "speech.py", "strips.py", "images.py", "corruptions.py", "constants.py", "features.py"):
+    for name in ("dataset.py", "speech.py", "strips.py", "images.py", "corruptions.py", "constants.py", "features.py",
+                 "augment.py"):
         digest.update((here / name).read_bytes())
     return f"{split}-seed{seed}-n{count}-shard{SHARD_SIZE}-{digest.hexdigest()[:10]}"
 

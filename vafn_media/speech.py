@@ -27,6 +27,12 @@ TEMPLATES: tuple[tuple[str, str, str], ...] = (
     ("arms ", " ", ""),
     ("move arm ", ", then arm ", ""),
     ("", ", ", " please"),
+    ("", ", then ", ""),
+    ("", " and ", ""),
+    ("okay, ", ", ", ""),
+    ("first ", ", then ", ""),
+    ("", ". ", "."),
+    ("arm ", " and arm ", ""),
 )
 #: Phrasings of the empty instruction.
 EMPTY_PHRASES: tuple[str, ...] = ("none", "nothing", "no arms", "empty instruction", "hold", "stop")
@@ -34,18 +40,30 @@ EMPTY_PHRASES: tuple[str, ...] = ("none", "nothing", "no arms", "empty instructi
 #: English voices and variants; held-out ones never appear in the training split.
 TRAIN_VOICES: tuple[str, ...] = ("en-us", "en", "en-gb-x-rp", "en-gb-x-gbclan", "en-029")
 HELDOUT_VOICES: tuple[str, ...] = ("en-us-nyc", "en-gb-scotland", "en-gb-x-gbcwmd")
+#: Every variant espeak-ng ships except the held-out ones (104 in espeak-ng 1.52).
 TRAIN_VARIANTS: tuple[str, ...] = (
-    "", "m1", "m2", "m4", "m6", "m7", "f1", "f2", "f4", "klatt", "klatt2", "klatt4",
-    "Andy", "david", "john", "max", "steph", "adam", "belinda", "robert", "whisper", "caleb",
+    "", "Alicia", "Andrea", "Andy", "Annie", "AnxiousAndy", "Demonic", "Denis", "Diogo", "Gene", "Gene2", "Henrique",
+    "Hugo", "Jacky", "Lee", "Marco", "Mario", "Michael", "Mike", "Mr serious", "Nguyen", "Reed", "RicishayMax",
+    "RicishayMax2", "RicishayMax3", "Storm", "Tweaky", "UniRobot", "adam", "anika", "anikaRobot", "announcer",
+    "antonio", "aunty", "belinda", "benjamin", "boris", "caleb", "croak", "david", "ed", "edward2", "f1", "f2", "f4",
+    "fast", "grandma", "grandpa", "gustave", "ian", "iven", "iven2", "iven3", "iven4", "john", "kaukovalta", "klatt",
+    "klatt2", "klatt4", "klatt5", "klatt6", "m1", "m2", "m4", "m6", "m7", "m8", "marcelo", "max", "michel", "miguel",
+    "mike2", "norbert", "pablo", "paul", "pedro", "quincy", "rob", "robert", "robosoft", "robosoft2", "robosoft3",
+    "robosoft4", "robosoft5", "robosoft6", "robosoft7", "robosoft8", "sandro", "shelby", "steph", "steph3", "travis",
+    "victor", "whisper", "whisperf", "zac",
 )
 HELDOUT_VARIANTS: tuple[str, ...] = ("m3", "m5", "f3", "f5", "klatt3", "linda", "steph2", "edward", "Alex")
-#: Ranges of espeak parameters sampled per utterance (inclusive).
-RATE_RANGE: tuple[int, int] = (130, 260)
-PITCH_RANGE: tuple[int, int] = (15, 85)
-INTONATION_RANGE: tuple[int, int] = (10, 90)
-WORDGAP_RANGE: tuple[int, int] = (0, 2)
+#: Ranges of espeak parameters sampled per utterance (inclusive): rate 0.7-1.5x the default 175 wpm, word gaps
+#: (units of 10 ms) up to 150 ms half of the time.
+RATE_RANGE: tuple[int, int] = (122, 262)
+PITCH_RANGE: tuple[int, int] = (10, 90)
+INTONATION_RANGE: tuple[int, int] = (5, 95)
+WORDGAP_RANGE: tuple[int, int] = (0, 15)
 #: Sample rate espeak-ng synthesises at.
 ESPEAK_SAMPLE_RATE: int = 22_050
+#: Silence appended to every utterance: espeak-ng stops on the last sample of the last phoneme, which looks like a
+#: recording cut mid-word (a real recording, and other engines, end in silence).
+TRAILING_SILENCE_SECONDS: float = 0.2
 
 # espeak-ng API constants.
 _AUDIO_OUTPUT_SYNCHRONOUS = 2
@@ -100,7 +118,7 @@ def sample_voice(rng: np.random.Generator, heldout: bool) -> Voice:
         rate=int(rng.integers(RATE_RANGE[0], RATE_RANGE[1] + 1)),
         pitch=int(rng.integers(PITCH_RANGE[0], PITCH_RANGE[1] + 1)),
         intonation=int(rng.integers(INTONATION_RANGE[0], INTONATION_RANGE[1] + 1)),
-        wordgap=int(rng.integers(WORDGAP_RANGE[0], WORDGAP_RANGE[1] + 1)),
+        wordgap=int(rng.integers(WORDGAP_RANGE[0], WORDGAP_RANGE[1] + 1)) if rng.random() < 0.5 else 0,
     )
 
 
@@ -173,11 +191,12 @@ class EspeakSynthesizer:
 
 
 def speak(arms: Sequence[int], voice: Voice = Voice(), template: int = 0, empty_phrase: int = 0) -> np.ndarray:
-    """Synthesise a spoken instruction at :data:`ESPEAK_SAMPLE_RATE` (float32).
+    """Synthesise a spoken instruction at :data:`ESPEAK_SAMPLE_RATE` (float32), followed by a short silence.
 
     :param arms: 1-based arm ids.
     :param voice: espeak voice settings.
     :param template: phrasing template index.
     :param empty_phrase: phrasing of the empty instruction.
     """
-    return EspeakSynthesizer.shared().synthesize(phrase(arms, template, empty_phrase), voice)
+    waveform = EspeakSynthesizer.shared().synthesize(phrase(arms, template, empty_phrase), voice)
+    return np.concatenate([waveform, np.zeros(int(TRAILING_SILENCE_SECONDS * ESPEAK_SAMPLE_RATE), np.float32)])

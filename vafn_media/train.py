@@ -136,7 +136,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--train-items", type=int, default=6000, help="training items (speech + strip pairs)")
     parser.add_argument("--val-items", type=int, default=500, help="validation items per split (test, heldout)")
-    parser.add_argument("--steps", type=int, default=1400, help="optimisation steps")
+    parser.add_argument("--steps", type=int, default=1600, help="optimisation steps")
     parser.add_argument("--batch-size", type=int, default=48)
     parser.add_argument("--lr", type=float, default=3e-3)
     parser.add_argument("--align-weight", type=float, default=0.2, help="weight of the InfoNCE alignment loss")
@@ -144,10 +144,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--temperature", type=float, default=0.1)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=2, help="data-generation processes")
-    parser.add_argument("--eval-every", type=int, default=350)
+    parser.add_argument("--eval-every", type=int, default=400)
     parser.add_argument("--out", type=Path, default=CHECKPOINT_DIR)
     parser.add_argument("--logdir", type=Path, default=Path("runs") / "multimedia")
     parser.add_argument("--cache-dir", type=Path, default=None)
+    parser.add_argument("--init", type=Path, default=None,
+                        help="start from this checkpoint's weights (fine-tuning) instead of a random initialisation")
     return parser.parse_args(argv)
 
 
@@ -177,6 +179,8 @@ def main(argv=None) -> dict:
 
     config = ModelConfig()
     model = InstructionModel(config)
+    if args.init is not None:
+        model.load_state_dict(torch.load(args.init, map_location="cpu", weights_only=True))
     optimizer = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=args.lr, total_steps=args.steps, pct_start=0.1)
     writer = _summary_writer(args.logdir)
@@ -231,8 +235,9 @@ def main(argv=None) -> dict:
         "args": {
             k: str(v) if isinstance(v, Path) else v
             for k, v in vars(args).items()
-            if k not in ("out", "logdir", "cache_dir")
+            if k not in ("out", "logdir", "cache_dir", "init")
         },
+        "init": None if args.init is None else str(args.init.name),
         "data_seconds": round(data_seconds, 1),
         "total_seconds": round(time.time() - started, 1),
         "cpu_seconds": round(_cpu_seconds(), 1),
