@@ -8,36 +8,55 @@ import json
 import os
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
+
+
+class _OneLineParser(argparse.ArgumentParser):
+    """An ArgumentParser whose usage errors are one line on stderr and exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        """Print ``vafn-instruct: error: <message>`` and exit 2."""
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface."""
-    parser = argparse.ArgumentParser(prog="vafn-instruct", description=__doc__)
-    parser.add_argument("--audio", help="speech file (WAV/FLAC/OGG, any sample rate >= 16 kHz)")
+    parser = _OneLineParser(prog="vafn-instruct", description=__doc__)
+    parser.add_argument("--audio", help="speech file (WAV/FLAC/OGG, any sample rate from 8 to 192 kHz)")
     parser.add_argument("--image", help="image of digits 1-3 in a left-to-right row (PNG/JPG/...)")
-    parser.add_argument("--code", help='machine code, e.g. "2,3,1" or "[2, 3, 1]"')
+    parser.add_argument("--code", help='machine code, e.g. "2,3,1" or "[2, 3, 1]"; "" is the empty instruction')
     parser.add_argument("--checkpoint", help="model checkpoint (.pt); default: the packaged one")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     return parser
 
 
+def _fail(message: str) -> int:
+    """Print one error line (newlines folded) and return exit code 2."""
+    print("vafn-instruct: error: " + " ".join(str(message).split()), file=sys.stderr)
+    return 2
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point; returns the process exit code (0 ok, 2 bad input)."""
+    """Entry point; returns the process exit code (0 ok, 2 bad input, one line on stderr)."""
     args = build_parser().parse_args(argv)
-    if not (args.audio or args.image or args.code):
-        build_parser().error("give at least one of --audio, --image, --code")
+    if args.audio is None and args.image is None and args.code is None:
+        return _fail("give at least one of --audio, --image, --code (see --help)")
+    for option in ("audio", "image", "checkpoint"):  # path errors before the slow imports (torch, OpenCV)
+        path = getattr(args, option)
+        if path is not None and not os.path.isfile(path):
+            what = "does not exist" if not os.path.exists(path) else "is not a file"
+            return _fail(f"--{option} {path!r} {what}")
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    import torch
-
-    from vafn_media.generator import InstructionGenerator
-
-    torch.set_num_threads(1)
     try:
+        import torch
+
+        from vafn_media.generator import InstructionGenerator
+
+        torch.set_num_threads(1)
         generator = InstructionGenerator.load(args.checkpoint)
         result = generator.transcribe(audio=args.audio, image=args.image, code=args.code)
-    except (ValueError, FileNotFoundError) as error:
-        print(f"vafn-instruct: error: {error}", file=sys.stderr)
-        return 2
+    except (ValueError, OSError, RuntimeError, ImportError) as error:
+        return _fail(str(error))
     if args.json:
         print(json.dumps({
             "instruction": list(result.arms), "code": result.instruction.to_code(),

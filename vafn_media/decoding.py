@@ -1,4 +1,4 @@
-"""CTC decoding of Φ: greedy paths with per-token confidence, token embeddings, and audio-visual fusion in Φ."""
+"""CTC decoding of Φ: greedy paths with per-token confidence, token embeddings, and calibrated audio-visual fusion."""
 
 from __future__ import annotations
 
@@ -71,9 +71,11 @@ def sequence_log_likelihood(log_probs: torch.Tensor, arms: list[int]) -> float:
     """CTC log-likelihood log P(arms | frames) (-inf when the sequence cannot be aligned).
 
     :param log_probs: (T, VOCAB_SIZE) log posteriors.
-    :param arms: candidate arm ids.
+    :param arms: candidate arm ids (empty: the all-blank path).
     """
     frames = log_probs.shape[0]
+    if not arms:
+        return float(log_probs[:, BLANK].sum())
     targets = torch.tensor(list(arms), dtype=torch.long).reshape(1, len(arms))
     loss = torch.nn.functional.ctc_loss(log_probs[:, None, :], targets, torch.tensor([frames]),
                                         torch.tensor([len(arms)]), blank=BLANK, reduction="sum",
@@ -91,47 +93,70 @@ class Fused:
     weakest: float
 
 
-def fuse(readings: dict[str, Decoded], decoder: torch.nn.Module, weights: dict[str, float] | None = None) -> Fused:
-    """Fuse per-modality readings in Φ.
+def calibrated(confidence: float, platt: tuple[float, float] | None) -> float:
+    """Probability that a reading is right, from its raw sequence confidence by Platt scaling (fitted on validation).
 
-    When all modalities read the same number of tokens, each token's Φ embeddings are averaged with weights
-    proportional to modality reliability x token confidence and decoded again by the shared decoder ("latent"
-    fusion). When the counts disagree, every modality's reading is rescored by the reliability-weighted sum over
-    modalities of its CTC log-likelihood and the best candidate wins ("rescored"); its confidence is the candidate's
-    posterior among the candidates, so a disagreement between modalities shows up as low confidence.
+    :param confidence: raw confidence in [0, 1].
+    :param platt: (slope, intercept) on the logit of the raw confidence; None leaves the confidence unchanged.
+    """
+    if platt is None:
+        return float(confidence)
+    c = min(max(float(confidence), 1e-6), 1 - 1e-6)
+    z = platt[0] * np.log(c / (1 - c)) + platt[1]
+    return float(1.0 / (1.0 + np.exp(-z)))
+
+
+def reading_confidence(reading: Decoded) -> float:
+    """Raw sequence confidence of a reading: its least certain decision (token or blank frame)."""
+    return float(min([reading.weakest] + list(reading.confidences)))
+
+
+def fuse(readings: dict[str, Decoded], decoder: torch.nn.Module, weights: dict[str, float] | None = None,
+         calibration: dict[str, tuple[float, float]] | None = None) -> Fused:
+    """Fuse per-modality readings; a disagreement is decided by every modality's evidence, never by one alone.
+
+    - All modalities read the same sequence: that sequence ("agree"); each token's confidence is the probability that
+      not every modality is wrong about it.
+    - Otherwise the candidates are each modality's reading plus, when they have the same length, the token-by-token
+      choice of the modality with the higher calibrated confidence. Each candidate is scored by the reliability-
+      weighted sum over modalities of its CTC log-likelihood (a product of experts: a sequence the sharp modality
+      rules out loses even if the other modality is confident) and the best wins ("rescored").
+
+    The winner's confidence is its posterior among the candidates, capped by the calibrated probability that the
+    modality it agrees with most is right, so a disagreement never looks certain.
 
     :param readings: modality -> greedy reading.
-    :param decoder: the shared decoder (pointwise: Φ vector -> CTC logits).
-    :param weights: modality -> reliability weight (calibrated on validation data; default 1 each).
+    :param decoder: the shared decoder (unused: readings are already decoded; kept for API compatibility).
+    :param weights: modality -> reliability weight of its log-likelihood (calibrated on validation; default 1 each).
+    :param calibration: modality -> Platt (slope, intercept) of its sequence confidence (default: uncalibrated).
     """
-    reliability = {name: 1.0 if weights is None else float(weights.get(name, 1.0)) for name in readings}
+    del decoder
     names = list(readings)
     if len(names) == 1:
         only = readings[names[0]]
         return Fused(only.arms, only.confidences, names[0], only.weakest)
-    counts = {len(readings[n].arms) for n in names}
-    if len(counts) == 1:
-        count = counts.pop()
-        if count == 0:
-            return Fused([], [], "latent", max(readings[n].weakest for n in names))
-        # (M, L)
-        mix = torch.tensor([[reliability[n] * readings[n].confidences[j] for j in range(count)] for n in names])
-        mix = mix / mix.sum(0, keepdim=True).clamp_min(1e-12)
-        stacked = torch.stack([readings[n].embeddings for n in names])  # (M, L, D)
-        fused = (mix[:, :, None] * stacked).sum(0)
-        probs = torch.softmax(decoder(fused), dim=-1)
-        probs[:, BLANK] = 0.0  # a token position was agreed on; only its identity is decided here
-        probs = probs / probs.sum(-1, keepdim=True)
-        confidence, arms = probs.max(-1)
-        return Fused([int(a) for a in arms], [float(c) for c in confidence], "latent",
-                     max(readings[n].weakest for n in names))
-    candidates = [readings[n].arms for n in names]
-    scores = np.array([sum(reliability[m] * sequence_log_likelihood(readings[m].log_probs, cand) for m in names)
-                       for cand in candidates])
+    reliability = {n: 1.0 if weights is None else float(weights.get(n, 1.0)) for n in names}
+    trust = {n: calibrated(reading_confidence(readings[n]), (calibration or {}).get(n)) for n in names}
+    sequences = {tuple(readings[n].arms) for n in names}
+    if len(sequences) == 1:
+        arms = list(readings[names[0]].arms)
+        confidences = [1.0 - float(np.prod([1.0 - readings[n].confidences[j] for n in names]))
+                       for j in range(len(arms))]
+        return Fused(arms, confidences, "agree", max(readings[n].weakest for n in names))
+    candidates = [tuple(readings[n].arms) for n in names]
+    if len({len(c) for c in candidates}) == 1:
+        mixed = tuple(int(readings[max(names, key=lambda n: trust[n] * readings[n].confidences[j])].arms[j])
+                      for j in range(len(candidates[0])))
+        candidates.append(mixed)
+    candidates = list(dict.fromkeys(candidates))
+    scores = np.array([sum(reliability[m] * sequence_log_likelihood(readings[m].log_probs, list(c)) for m in names)
+                       for c in candidates])
     scores = np.nan_to_num(scores, nan=-1e9, neginf=-1e9)
     posterior = np.exp(scores - scores.max())
     posterior /= posterior.sum()
     best = int(np.argmax(scores))
-    winner = readings[names[best]]
-    return Fused(list(winner.arms), [min(c, float(posterior[best])) for c in winner.confidences], "rescored",
-                 min(winner.weakest, float(posterior[best])))
+    winner = list(candidates[best])
+    backer = max(names, key=lambda n: (tuple(readings[n].arms) == candidates[best], trust[n]))
+    cap = min(float(posterior[best]), trust[backer])
+    token_conf = [max(float(np.exp(readings[n].log_probs[:, a].max())) for n in names) for a in winner]
+    return Fused(winner, [min(c, cap) for c in token_conf], "rescored", cap)

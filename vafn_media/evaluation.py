@@ -41,6 +41,16 @@ class CellResult:
     seconds: np.ndarray
     cpu_seconds: np.ndarray
     confidence: np.ndarray
+    #: Per item: digit errors (edit distance, capped at the reference length) and reference digits.
+    digit_errors: np.ndarray | None = None
+    digits: np.ndarray | None = None
+
+    @property
+    def digit_accuracy(self) -> float:
+        """1 - digit errors / reference digits, in % (100 for a cell of empty instructions)."""
+        if self.digits is None or self.digits.sum() == 0:
+            return 100.0
+        return 100.0 * (1.0 - self.digit_errors.sum() / self.digits.sum())
 
 
 def corrupted_inputs(items: RawItems, eval_seed: int, index: int, row: str) -> dict:
@@ -83,6 +93,7 @@ def run_cell(transcribe: Callable[..., object], items: RawItems, eval_seed: int,
     """
     count = len(items.arms) if limit is None else min(limit, len(items.arms))
     correct, seconds, cpu, confidence = np.zeros(count, bool), np.zeros(count), np.zeros(count), np.zeros(count)
+    errors, digits = np.zeros(count, int), np.array([len(items.arms[i]) for i in range(count)])
     for i in range(count):
         kwargs = corrupted_inputs(items, eval_seed, i, row)
         start, start_cpu = time.perf_counter(), time.thread_time()
@@ -91,7 +102,118 @@ def run_cell(transcribe: Callable[..., object], items: RawItems, eval_seed: int,
         except ValueError:
             result = None
         seconds[i], cpu[i] = time.perf_counter() - start, time.thread_time() - start_cpu
+        errors[i] = digits[i]
         if result is not None:
             correct[i] = tuple(result.instruction.arms) == tuple(items.arms[i])
             confidence[i] = result.confidence
-    return CellResult(correct, seconds, cpu, confidence)
+            errors[i] = min(digits[i], edit_distance(tuple(items.arms[i]), tuple(result.instruction.arms)))
+    return CellResult(correct, seconds, cpu, confidence, errors, digits)
+
+
+def edit_distance(a: tuple[int, ...], b: tuple[int, ...]) -> int:
+    """Levenshtein distance between two arm-id sequences (substitutions, insertions, deletions).
+
+    :param a: reference.
+    :param b: hypothesis.
+    """
+    row = list(range(len(b) + 1))
+    for i, x in enumerate(a, 1):
+        previous, row[0] = row[0], i
+        for j, y in enumerate(b, 1):
+            previous, row[j] = row[j], min(row[j] + 1, row[j - 1] + 1, previous + (x != y))
+    return row[-1]
+
+
+@dataclass
+class SpeechItem:
+    """One spoken instruction of a robustness set: label, clean waveform and rate, a fast rendition, an image."""
+
+    arms: tuple[int, ...]
+    waveform: np.ndarray
+    sample_rate: int
+    fast: np.ndarray
+    fast_rate: int
+    image: np.ndarray
+
+
+def speech_items(engine: str, count: int, seed: int) -> list[SpeechItem]:
+    """Held-out spoken instructions (lengths 1-10, random phrasings) from ``engine``: "espeak" (held-out voices and
+    variants only, synthesised in this process) or an evaluation engine of :mod:`vafn_media.engines`.
+
+    "fast" renditions are made by the engine itself (espeak: 1.4x its rate; flite: duration stretch 0.7).
+
+    :param engine: "espeak" or a name from :func:`vafn_media.engines.available_engines`.
+    :param count: number of items.
+    :param seed: seed of labels, voices, phrasings and images.
+    """
+    from dataclasses import replace
+
+    from vafn_media.engines import FLITE_VOICES, speak_with
+    from vafn_media.speech import ESPEAK_SAMPLE_RATE, TEMPLATES, sample_voice, speak
+    from vafn_media.strips import render_strip
+
+    items = []
+    for i in range(count):
+        rng = np.random.default_rng([seed, i])
+        arms = tuple(int(a) for a in rng.integers(1, 4, int(rng.integers(1, 11))))
+        template = int(rng.integers(len(TEMPLATES)))
+        image = render_strip(arms, np.random.default_rng([seed, i, 7]), heldout=True)
+        if engine == "espeak":
+            voice = sample_voice(rng, heldout=True)
+            clean = speak(arms, voice, template)
+            fast = speak(arms, replace(voice, rate=min(450, int(voice.rate * 1.4))), template)
+            items.append(SpeechItem(arms, clean, ESPEAK_SAMPLE_RATE, fast, ESPEAK_SAMPLE_RATE, image))
+        else:
+            voice = FLITE_VOICES[i % len(FLITE_VOICES)]
+            clean, rate = speak_with(engine, arms, voice, template)
+            fast, fast_rate = speak_with(engine, arms, voice, template, stretch=0.7)
+            items.append(SpeechItem(arms, clean, rate, fast, fast_rate, image))
+    return items
+
+
+def robust_cell(transcribe: Callable[..., object], items: list[SpeechItem], condition: str, seed: int,
+                with_image: bool = False) -> dict[str, float]:
+    """Accuracy of one (engine, condition) cell, audio alone or audio + the item's clean image.
+
+    Returns exact-sequence accuracy, digit accuracy (1 - edit distance / reference digits), the share of results
+    flagged ``low_confidence``, of inputs rejected with ValueError, of *wrong and unflagged* results, and the mean
+    thread-CPU time per call. Silence of 0.25 s is added around each clip (as a recording would have).
+
+    :param transcribe: ``InstructionGenerator.transcribe``.
+    :param items: from :func:`speech_items`.
+    :param condition: one of :data:`vafn_media.augment.CONDITIONS`.
+    :param seed: seed of the degradation noise and rooms.
+    :param with_image: also give the clean image.
+    """
+    from vafn_media.augment import apply_condition
+
+    exact, digits, total, flagged, rejected, silent_wrong, cpu = 0, 0, 0, 0, 0, 0, []
+    for i, item in enumerate(items):
+        source, rate = (item.fast, item.fast_rate) if condition == "fast" else (item.waveform, item.sample_rate)
+        pad = np.zeros(int(0.25 * rate), np.float32)
+        source = np.concatenate([pad, source, pad])
+        waveform, rate = apply_condition(source, rate, "clean" if condition == "fast" else condition,
+                                         np.random.default_rng([seed, i]))
+        kwargs = {"audio": (waveform, rate)}
+        if with_image:
+            kwargs["image"] = item.image
+        start = time.thread_time()
+        try:
+            result = transcribe(**kwargs)
+        except ValueError:
+            result = None
+        cpu.append(time.thread_time() - start)
+        total += len(item.arms)
+        if result is None:
+            rejected += 1
+            digits += len(item.arms)
+            continue
+        read = tuple(result.instruction.arms)
+        exact += read == item.arms
+        digits += min(len(item.arms), edit_distance(item.arms, read))
+        flagged += bool(result.low_confidence)
+        silent_wrong += read != item.arms and not result.low_confidence
+    n = max(1, len(items))
+    return {"exact": 100.0 * exact / n, "digit": 100.0 * (1 - digits / max(1, total)), "flagged": 100.0 * flagged / n,
+            "rejected": 100.0 * rejected / n, "wrong_unflagged": 100.0 * silent_wrong / n,
+            "cpu_ms": 1000.0 * float(np.mean(cpu)) if cpu else 0.0}

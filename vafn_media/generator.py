@@ -13,13 +13,11 @@ import numpy as np
 
 from vafn_gym.instructions import Instruction
 from vafn_media.audio import AudioSource, load_audio
-from vafn_media.constants import IMAGE_HEIGHT, LOW_CONFIDENCE, MAX_INSTRUCTION_LENGTH, NUM_ARMS, SAMPLE_RATE
+from vafn_media.constants import LOW_CONFIDENCE, MAX_INSTRUCTION_LENGTH, NUM_ARMS, SAMPLE_RATE
 from vafn_media.images import ImageSource, canonical_strip
 
 #: The packaged checkpoint (weights + metadata JSON), produced by ``python -m vafn_media.train``.
 DEFAULT_CHECKPOINT = Path(__file__).parent / "checkpoints" / "instruction_model.pt"
-#: Sample rates whose mel filterbanks are built when a generator loads (the first librosa call is slow).
-WARM_SAMPLE_RATES: tuple[int, ...] = (SAMPLE_RATE, 22_050, 44_100, 48_000)
 
 
 @dataclass(frozen=True)
@@ -29,10 +27,12 @@ class Transcription:
     :param instruction: the decoded instruction.
     :param confidences: per-token probability of each arm id (1.0 for machine code).
     :param confidence: sequence confidence: the least certain decision of the reading (1.0 for machine code).
-    :param low_confidence: True when ``confidence`` is below the threshold, the input had quality warnings, or
-        the modalities disagreed on the sequence. Treat such a result as a guess.
+    :param low_confidence: True when ``confidence`` is below the threshold, the input had quality warnings (clipped,
+        possibly cut off, a modality dropped), or the modalities disagreed on the sequence. Treat such a result as a
+        guess; :class:`MultimediaStream` does not enqueue it.
     :param modalities: the modalities that contributed.
-    :param method: "code", "audio", "image", "latent" (token-wise fusion in Φ) or "rescored" (joint CTC rescoring).
+    :param method: "code", "audio", "image", or for several modalities "agree" (same reading), "token" (token-wise
+        choice by calibrated confidence) or "select" (the reading with the higher calibrated confidence).
     :param readings: each modality's own reading (arm ids).
     :param warnings: non-fatal input problems (clipping, dropped modalities, disagreement).
     :param dropped: modalities that were given but unusable, with the reason.
@@ -72,6 +72,10 @@ class InstructionGenerator:
         self.low_confidence = float(low_confidence)
         #: Modality reliability weights of the fusion, calibrated by the training command (default: equal).
         self.fusion_weights: dict = dict(self.metadata.get("fusion_weights", {}))
+        #: Per-modality Platt scaling of the sequence confidence (fitted on validation data; default: none).
+        self.confidence_calibration: dict = {
+            name: tuple(value) for name, value in self.metadata.get("confidence_calibration", {}).items()
+        }
         self._torch = torch
 
     @classmethod
@@ -91,9 +95,15 @@ class InstructionGenerator:
                 f"no checkpoint at {checkpoint}; train one with `python -m vafn_media.train`"
             )
         meta_path = checkpoint.with_suffix(".json")
-        metadata = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
-        model = InstructionModel(ModelConfig.from_dict(metadata["config"]) if "config" in metadata else ModelConfig())
-        model.load_state_dict(torch.load(checkpoint, map_location="cpu", weights_only=True))
+        try:
+            metadata = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+            model = InstructionModel(
+                ModelConfig.from_dict(metadata["config"]) if "config" in metadata else ModelConfig()
+            )
+            model.load_state_dict(torch.load(checkpoint, map_location="cpu", weights_only=True))
+        except Exception as error:  # noqa: BLE001 - torch/pickle/zip/JSON raise many types for a damaged file
+            raise ValueError(f"checkpoint {checkpoint} (or its metadata {meta_path.name}) is corrupt or does not "
+                             f"match the model: {type(error).__name__}: {str(error)[:200]}") from error
         generator = cls(fold_batchnorm(model.eval()), metadata)
         if warm:
             generator.warm_up()
@@ -101,27 +111,32 @@ class InstructionGenerator:
 
     def warm_up(self) -> None:
         """Build cached filterbanks, import the I/O libraries and run each path once so the first real call is fast."""
+        import soundfile  # noqa: F401  (first import is slow; file input uses it)
+        import soxr  # noqa: F401
+
         from vafn_media.features import mel_filterbank
 
-        for rate in WARM_SAMPLE_RATES:
-            mel_filterbank(rate)
-        import soundfile  # noqa: F401  (first import is slow; file input uses it)
+        mel_filterbank(SAMPLE_RATE)
 
         rng = np.random.default_rng(0)
         self.encode_audio(rng.normal(0, 0.1, SAMPLE_RATE).astype(np.float32), SAMPLE_RATE)
-        card = rng.integers(0, 255, (IMAGE_HEIGHT, IMAGE_HEIGHT * 4)).astype(np.uint8)
-        self.read(self.encode_strip(canonical_strip(card)))
+        from vafn_media.strips import render_strip
+
+        self.read(self.encode_strip(canonical_strip(render_strip([1, 2, 3], rng))))
 
     # --- encoders ---
     def encode_audio(self, waveform: np.ndarray, sample_rate: int):
-        """Φ frames (T, LATENT_DIM) of a validated mono waveform.
+        """Φ frames (T, LATENT_DIM) of a validated mono waveform (resampled to SAMPLE_RATE first if needed).
 
         :param waveform: float32 samples.
         :param sample_rate: its rate in Hz.
         """
+        from vafn_media.augment import resample
         from vafn_media.features import log_mel
 
         torch = self._torch
+        waveform = resample(waveform, sample_rate, SAMPLE_RATE)
+        sample_rate = SAMPLE_RATE
         with torch.inference_mode():
             features = log_mel(waveform, sample_rate)
             phi, _ = self.model.encode("audio", features, torch.tensor([features.shape[-1]]))
@@ -161,7 +176,7 @@ class InstructionGenerator:
         :param code: machine code (``"2,3,1"``, ``"[2, 3, 1]"``, JSON, a list of arm ids or an Instruction).
         :param sample_rate: sample rate of a bare ``audio`` waveform.
         """
-        from vafn_media.decoding import fuse
+        from vafn_media.decoding import calibrated, fuse
 
         started = time.perf_counter()
         given = {
@@ -195,13 +210,16 @@ class InstructionGenerator:
             raise ValueError("no usable input: " + "; ".join(f"{name}: {why}" for name, why in dropped.items()))
         warnings += [f"{name} ignored: {why}" for name, why in dropped.items()]
         with self._torch.inference_mode():
-            fused = fuse(readings, self.model.decode, self.fusion_weights)
+            fused = fuse(readings, self.model.decode, self.fusion_weights, self.confidence_calibration)
         if len({tuple(r.arms) for r in readings.values()}) > 1:
             warnings.append("modalities disagree: " + ", ".join(f"{n}={list(r.arms)}" for n, r in readings.items()))
         arms = fused.arms[:MAX_INSTRUCTION_LENGTH]
         if len(fused.arms) > MAX_INSTRUCTION_LENGTH:
             warnings.append(f"read {len(fused.arms)} arm ids; only the first {MAX_INSTRUCTION_LENGTH} are kept")
         confidence = min([fused.weakest] + list(fused.confidences))
+        if len(readings) == 1:
+            only = next(iter(readings))
+            confidence = calibrated(confidence, self.confidence_calibration.get(only))
         low = confidence < self.low_confidence or bool(warnings)
         return Transcription(
             instruction=Instruction.from_arms(arms, n_arms=NUM_ARMS),

@@ -1,0 +1,293 @@
+"""Bad and unusual input to the media reader: an error or a flag, never a confident wrong command; the CLI's contract.
+
+Uses the packaged checkpoint. Speech comes from espeak-ng (held-out voices) and, when the ``flite`` program is
+installed, from flite (an engine never used for training).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("librosa")
+cv2 = pytest.importorskip("cv2")
+soundfile = pytest.importorskip("soundfile")
+pytest.importorskip("espeakng_loader")
+
+torch.set_num_threads(1)
+
+#: Spoken instructions of the cut-file tests (several lengths, so cuts fall mid-word and between words).
+CUT_ARMS: tuple[tuple[int, ...], ...] = ((2, 3, 1, 3), (1, 2), (3, 3, 3), (2, 1, 3, 2, 1, 3), (1,), (3, 1, 2, 2, 1))
+SILENCE_S = 0.3
+
+
+@pytest.fixture(scope="module")
+def generator():
+    from vafn_media import InstructionGenerator
+
+    return InstructionGenerator.load()
+
+
+def _espeak(arms, voice: str = "en-us-nyc", variant: str = "m3") -> tuple[np.ndarray, int]:
+    """A held-out espeak voice saying ``arms``, with the silences a recording has around it."""
+    from vafn_media.speech import ESPEAK_SAMPLE_RATE, Voice, speak
+
+    wave = speak(arms, Voice(voice, variant))
+    pad = np.zeros(int(SILENCE_S * ESPEAK_SAMPLE_RATE), np.float32)
+    return np.concatenate([pad, wave, pad]), ESPEAK_SAMPLE_RATE
+
+
+def _outcome(generator, **kwargs) -> str:
+    """"error", "flagged", "right" or "WRONG" (confident and wrong) for a transcription whose truth is ``arms``."""
+    arms = kwargs.pop("arms")
+    try:
+        result = generator.transcribe(**kwargs)
+    except ValueError:
+        return "error"
+    if result.low_confidence:
+        return "flagged"
+    return "right" if result.arms == tuple(arms) else "WRONG"
+
+
+# --- audio -------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("fraction", [0.5, 0.75])
+def test_truncated_wav_files_are_errors(generator, tmp_path, fraction):
+    """``head -c`` of a good WAV: the header promises more than the file holds -> ValueError naming the truncation."""
+    for k, arms in enumerate(CUT_ARMS):
+        wave, rate = _espeak(arms)
+        good = tmp_path / f"good{k}.wav"
+        soundfile.write(good, wave, rate, subtype="PCM_16")
+        assert generator.transcribe(audio=str(good)).arms == arms
+        cut = tmp_path / f"cut{k}.wav"
+        data = good.read_bytes()
+        cut.write_bytes(data[: int(len(data) * fraction)])
+        with pytest.raises(ValueError, match="truncated"):
+            generator.transcribe(audio=str(cut))
+
+
+@pytest.mark.parametrize("fraction", [0.5, 0.75])
+def test_cut_recordings_with_valid_headers_are_never_confidently_wrong_mid_word(generator, tmp_path, fraction):
+    """A clip cut and saved again (valid header): when the cut falls inside a word the result is flagged or an
+    error; a cut that falls in a pause is a complete shorter command and cannot be told apart (counted, not hidden)."""
+    from vafn_media.audio import speech_problems
+    from vafn_media.augment import resample
+
+    outcomes = []
+    for arms in CUT_ARMS:
+        wave, rate = _espeak(arms)
+        speech_end = len(wave) - int(SILENCE_S * rate)
+        cut = wave[: int(speech_end * fraction)]
+        path = tmp_path / "cut.wav"
+        soundfile.write(path, cut, rate, subtype="PCM_16")
+        outcome = _outcome(generator, audio=str(path), arms=arms)
+        ends_loud = bool(speech_problems(resample(cut, rate, 16_000)))
+        outcomes.append((outcome, ends_loud))
+        if ends_loud:  # the cut fell inside a sound
+            assert outcome in ("error", "flagged"), (arms, fraction, outcome)
+    assert any(loud for _, loud in outcomes), "no cut fell mid-word: the test does not test anything"
+
+
+def test_one_sample_and_tiny_files_are_errors(generator, tmp_path):
+    for count in (1, 2, 100):
+        path = tmp_path / f"tiny{count}.wav"
+        soundfile.write(path, np.full(count, 0.3, np.float32), 16_000)
+        with pytest.raises(ValueError, match="too short|empty"):
+            generator.transcribe(audio=str(path))
+
+
+def test_random_payload_audio_is_an_error(generator, tmp_path):
+    rng = np.random.default_rng(0)
+    for k, rate in enumerate((8_000, 16_000, 44_100)):
+        path = tmp_path / f"random{k}.wav"
+        soundfile.write(path, np.zeros(rate, np.int16), rate, subtype="PCM_16")
+        data = bytearray(path.read_bytes())
+        data[44:] = rng.integers(0, 256, len(data) - 44, dtype=np.uint8).tobytes()  # keep the header, random payload
+        path.write_bytes(bytes(data))
+        with pytest.raises(ValueError, match="noise"):
+            generator.transcribe(audio=str(path))
+
+
+def test_over_long_audio_is_rejected_from_the_header(generator, tmp_path):
+    path = tmp_path / "long.wav"
+    with soundfile.SoundFile(path, "w", 8_000, 1, "PCM_16") as handle:
+        handle.write(np.zeros(8_000 * 25, np.int16))
+    started = time.perf_counter()
+    with pytest.raises(ValueError, match="from its header"):
+        generator.transcribe(audio=str(path))
+    assert time.perf_counter() - started < 1.0
+
+
+@pytest.mark.parametrize("rate", [8_000, 11_025, 16_000, 96_000, 192_000])
+def test_any_rate_from_8_to_192_khz_is_read(generator, rate):
+    from vafn_media.augment import resample
+
+    arms = (2, 3, 1, 3)
+    wave, native = _espeak(arms)
+    assert generator.transcribe(audio=(resample(wave, native, rate), rate)).arms == arms
+
+
+def test_rates_outside_8_to_192_khz_are_errors(generator):
+    wave = np.random.default_rng(0).normal(0, 0.1, 4000).astype(np.float32)
+    for rate in (4_000, 384_000):
+        with pytest.raises(ValueError, match="sample rate"):
+            generator.transcribe(audio=(wave, rate))
+
+
+# --- images ------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", ["uniform", "gaussian", "salt"])
+def test_noise_images_are_errors(generator, kind):
+    rng = np.random.default_rng(1)
+    image = {"uniform": rng.integers(0, 256, (120, 400)).astype(np.uint8),
+             "gaussian": np.clip(rng.normal(128, 40, (100, 300)), 0, 255).astype(np.uint8),
+             "salt": ((rng.random((100, 300)) > 0.95) * 255).astype(np.uint8)}[kind]
+    with pytest.raises(ValueError, match="noise"):
+        generator.transcribe(image=image)
+
+
+@pytest.mark.parametrize("shape", [(1, 2), (2, 1), (1, 1), (3, 300)])
+def test_tiny_images_are_errors(generator, shape):
+    image = np.random.default_rng(0).integers(0, 256, shape).astype(np.uint8)
+    with pytest.raises(ValueError, match="too small"):
+        generator.transcribe(image=image)
+
+
+def test_pixel_limit_is_checked_before_decoding(generator, tmp_path):
+    """A small PNG that decodes to 20,000 x 20,000 pixels is refused from its header, fast and without the memory."""
+    import zlib
+
+    def chunk(kind: bytes, payload: bytes) -> bytes:
+        import struct
+
+        return struct.pack(">I", len(payload)) + kind + payload + struct.pack(">I", zlib.crc32(kind + payload))
+
+    import struct
+
+    side = 20_000
+    rows = zlib.compress(b"".join(b"\x00" + bytes(side) for _ in range(64)), 9)  # a valid start; never decoded
+    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", side, side, 8, 0, 0, 0, 0))
+           + chunk(b"IDAT", rows) + chunk(b"IEND", b""))
+    path = tmp_path / "huge.png"
+    path.write_bytes(png)
+    started = time.perf_counter()
+    with pytest.raises(ValueError, match="pixels"):
+        generator.transcribe(image=str(path))
+    assert time.perf_counter() - started < 1.0
+    with pytest.raises(ValueError, match="pixels"):
+        generator.transcribe(image=np.zeros((9_000, 9_000), np.uint8))
+
+
+# --- fusion ------------------------------------------------------------------------------------------------------
+def test_disagreeing_modalities_are_flagged(generator):
+    from vafn_media.strips import render_strip
+
+    wave, rate = _espeak((2, 3, 1))
+    image = render_strip([1, 1, 2, 2], np.random.default_rng(0), heldout=True)
+    result = generator.transcribe(audio=(wave, rate), image=image)
+    assert set(result.readings["audio"]) and result.readings["audio"] != result.readings["image"]
+    assert result.low_confidence and any("disagree" in w for w in result.warnings)
+    assert result.method == "rescored"
+
+
+def _reading(path, scale=1.0):
+    """Greedy reading of CTC logits that follow ``path`` (frame labels) with sharpness ``scale``."""
+    from vafn_media.constants import LATENT_DIM, VOCAB_SIZE
+    from vafn_media.decoding import greedy_decode
+
+    logits = torch.full((len(path), VOCAB_SIZE), -4.0)
+    logits[torch.arange(len(path)), torch.tensor(path)] = 4.0
+    return greedy_decode(torch.zeros(len(path), LATENT_DIM), logits * scale)
+
+
+def test_fusion_weighs_every_modalitys_evidence_and_calibrates():
+    from vafn_media.decoding import calibrated, fuse
+
+    assert calibrated(0.9, (1.0, 0.0)) == pytest.approx(0.9)
+    assert calibrated(0.95, (1.0, -3.8)) < 0.5 < calibrated(0.9, (1.0, 1.3))
+    image = _reading([0, 2, 0, 3, 0, 1, 0, 0], scale=2.0)            # sharp: [2, 3, 1]
+    audio = _reading([0, 2, 2, 0, 3, 3, 0, 0], scale=0.6)            # soft, drops the last token: [2, 3]
+    assert image.arms == [2, 3, 1] and audio.arms == [2, 3]
+    fused = fuse({"audio": audio, "image": image}, None)
+    assert fused.arms == [2, 3, 1] and fused.method == "rescored"
+    calibration = {"audio": (1.0, 0.0), "image": (1.0, -6.0)}      # validation says: this image is rarely right
+    capped = fuse({"audio": audio, "image": image}, None, None, calibration)
+    assert max(capped.confidences) <= calibrated(min(image.confidences + [image.weakest]), calibration["image"])
+    agree = fuse({"audio": _reading([0, 1, 0, 2]), "image": _reading([1, 0, 2, 0])}, None)
+    assert agree.method == "agree" and agree.arms == [1, 2] and all(c > 0.99 for c in agree.confidences)
+
+
+# --- the stream ----------------------------------------------------------------------------------------------------
+def test_stream_never_enqueues_bad_or_cut_input(generator, tmp_path):
+    from vafn_gym.queue import InstructionQueue
+    from vafn_media import MultimediaStream
+
+    wave, rate = _espeak((2, 3, 1, 3))
+    good = tmp_path / "good.wav"
+    soundfile.write(good, wave, rate, subtype="PCM_16")
+    truncated = tmp_path / "truncated.wav"
+    truncated.write_bytes(good.read_bytes()[: len(good.read_bytes()) // 2])
+    speech_end = len(wave) - int(SILENCE_S * rate)
+    queue = InstructionQueue()
+    with MultimediaStream(queue, generator) as stream:
+        stream.submit(audio=str(good))
+        stream.submit(audio=str(truncated))
+        stream.submit(audio=np.full(1, 0.5, np.float32), sample_rate=16_000)
+        stream.submit(image=np.random.default_rng(0).integers(0, 256, (120, 400)).astype(np.uint8))
+        stream.submit(image=np.zeros((1, 2), np.uint8))
+        stream.submit(audio=(wave[: int(0.62 * speech_end)], rate))
+        assert stream.wait(60)
+    statuses = [event.status for event in sorted(stream.events, key=lambda e: e.ticket)]
+    assert statuses[0] == "enqueued" and len(queue) == 1, [(e.status, e.message) for e in stream.events]
+    assert all(status in ("error", "rejected") for status in statuses[1:]), statuses
+
+
+# --- CLI -----------------------------------------------------------------------------------------------------------
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    code = ("import sys\nfrom vafn_media.cli import main\ntry:\n    rc = main(sys.argv[1:])\nexcept SystemExit as e:\n"
+            "    rc = e.code\nprint('TORCH' if 'torch' in sys.modules else 'NOTORCH', file=sys.stderr)\nsys.exit(rc)")
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=120)
+
+
+def _error_lines(done: subprocess.CompletedProcess) -> list[str]:
+    return [line for line in done.stderr.splitlines() if line.startswith("vafn-instruct")]
+
+
+def test_cli_help_and_path_errors_do_not_import_torch(tmp_path):
+    done = _cli("--help")
+    assert done.returncode == 0 and "--audio" in done.stdout and "NOTORCH" in done.stderr
+    for args in (("--audio", str(tmp_path / "missing.wav")), ("--image", str(tmp_path)),
+                 ("--code", "1", "--checkpoint", str(tmp_path / "none.pt")), ("--bogus",), ()):
+        done = _cli(*args)
+        assert done.returncode == 2, (args, done.stderr)
+        assert len(_error_lines(done)) == 1 and "NOTORCH" in done.stderr, (args, done.stderr)
+
+
+def test_cli_bad_inputs_exit_2_with_one_line(tmp_path):
+    from vafn_media.generator import DEFAULT_CHECKPOINT
+
+    bad_ckpt = tmp_path / "model.pt"
+    bad_ckpt.write_bytes(DEFAULT_CHECKPOINT.read_bytes()[:5000])
+    (tmp_path / "model.json").write_text(DEFAULT_CHECKPOINT.with_suffix(".json").read_text())
+    tiny = tmp_path / "tiny.wav"
+    soundfile.write(tiny, np.full(1, 0.3, np.float32), 16_000)
+    garbage = tmp_path / "garbage.png"
+    garbage.write_bytes(b"not an image" * 20)
+    for args in (("--code", "1", "--checkpoint", str(bad_ckpt)), ("--audio", str(tiny)), ("--image", str(garbage)),
+                 ("--code", "[4, 1]"), ("--code", "two")):
+        done = _cli(*args)
+        assert done.returncode == 2, (args, done.stdout, done.stderr)
+        assert len(_error_lines(done)) == 1, (args, done.stderr)
+    assert "corrupt" in _error_lines(_cli("--code", "1", "--checkpoint", str(bad_ckpt)))[0]
+
+
+def test_cli_empty_code_is_the_empty_instruction():
+    done = _cli("--code", "", "--json")
+    assert done.returncode == 0, done.stderr
+    assert '"instruction": []' in done.stdout
