@@ -8,7 +8,7 @@ EXTRAS = {
     # The speech synthesiser (espeakng-loader, GPL-3) is only used to generate training data; it is never vendored.
     "media": [
         "librosa>=0.10", "soundfile>=0.12", "opencv-python-headless>=4.8", "scikit-learn>=1.3", "soxr>=0.3",
-        "espeakng-loader>=0.2",
+        "scipy>=1.10", "pillow>=9", "espeakng-loader>=0.2",
     ],
     # optuna >= 4: the journal-file storage (the tuning default); psycopg2-binary: PostgreSQL studies (docs/tuning.md).
     "zoo": [
