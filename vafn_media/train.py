@@ -1,4 +1,4 @@
-"""Training command of the packaged model: ``python -m vafn_media.train`` (CPU, one thread, ~15 min).
+"""Training command of the reader: ``python -m vafn_media.train`` (CPU; 2 processes for data, 1 thread for the model).
 
 Generates (or reuses) the seeded training data, then trains both encoders, the shared projection and the shared CTC
 decoder jointly with: CTC on audio Φ, CTC on image Φ, a token-level InfoNCE alignment between the audio and image
