@@ -142,6 +142,16 @@ def test_learn_vecenv_tensorboard_save_load(tmp_path):
     loaded.learn(100, reset_num_timesteps=False, log_interval=None)  # continues; None = zoo "--log-interval -2"
 
 
+@pytest.mark.parametrize("sac_gradient_steps, expected", [(0, 0), (5, 5), (-1, 64)])
+def test_sac_gradient_steps_follow_every_meta_iteration(sac_gradient_steps, expected, monkeypatch):
+    model = tiny_model(sac_gradient_steps=sac_gradient_steps, n_support=16, n_query=16)  # 2 x (16 + 16) = 64 steps
+    calls = []
+    monkeypatch.setattr(model, "train", lambda batch_size, gradient_steps: calls.append(gradient_steps))
+    model.learn(128, log_interval=None)
+    assert model.meta_iterations == 2
+    assert calls == ([expected] * 2 if expected else [])
+
+
 def snapshot(model: MAMLSAC) -> list[torch.Tensor]:
     """Every tensor adapt() must leave alone: parameters, target net, α, inner step sizes, optimiser moments."""
     tensors = [t.clone() for t in model.policy.state_dict().values()]
@@ -191,6 +201,8 @@ def test_bad_arguments_raise(model):
     env = gym.make(ENV_ID, **ENV_KWARGS)
     with pytest.raises(ValueError, match="meta_batch_mode"):
         tiny_model(meta_batch_mode="parallel")
+    with pytest.raises(ValueError, match="sac_gradient_steps"):
+        tiny_model(sac_gradient_steps=-2)
     with pytest.raises(ValueError, match="k must be"):
         model.adapt(env, k=-1)
     with pytest.raises(ValueError, match="n_support"):
