@@ -359,15 +359,8 @@ def test_algorithms_read_the_layout_from_policy_kwargs():
 # --- learning, save/load, adaptation (one training run per algorithm) ------------------------------------------------
 
 
-#: Known gaps, measured: on the v1 env (inactive arms held) MADDPG's CI-sized run does not beat a uniform-random policy
-#: (return -3.70 vs 0.32 at 3,000 steps; -0.04 at 5,000; -0.51 with lr 3e-4). Strict: the test fails once it does.
-SHORT_RUN_KNOWN_FAILURES = {"MADDPG": "MADDPG's 3,000-step run does not beat random on the v1 env (docs/results.md)"}
-
-
-def test_short_run_beats_random_policy(trained, request):
+def test_short_run_beats_random_policy(trained):
     name, model, env = trained
-    if name in SHORT_RUN_KNOWN_FAILURES:
-        request.applymarker(pytest.mark.xfail(strict=True, reason=SHORT_RUN_KNOWN_FAILURES[name]))
     learned = mean_return(model, env)
     random = mean_return(UniformRandomPolicy(SEED, env.action_space.shape[0]), env)
     assert learned > random, f"{name}: deterministic return {learned:.2f} does not beat random {random:.2f}"
