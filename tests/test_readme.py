@@ -129,23 +129,27 @@ def test_readme_links_resolve():
     assert "../shared" not in text
 
 
+def run_commands(commands: list[str], work: Path, timeout: int) -> list[str]:
+    """Run each command with bash in ``work``; print the timings, return one message per failed command."""
+    timings, failures = [], []
+    for run in commands:
+        start = time.perf_counter()
+        proc = subprocess.run(["bash", "-c", run], cwd=work, env=env(), capture_output=True, text=True, timeout=timeout)
+        timings.append(f"{time.perf_counter() - start:5.1f} s  {run}")
+        if proc.returncode != 0:
+            failures.append(f"exit {proc.returncode}: {run}\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
+    print("\n".join(timings))
+    return failures
+
+
 def test_every_readme_command_runs(tmp_path):
     text = README.read_text(encoding="utf-8")
     commands = bash_commands(text)
     stale = set(SHORTENED) - set(commands)
     assert not stale, f"SHORTENED names commands the README no longer has: {stale}"
     work = scratch(tmp_path)
-    timings, failures = [], []
-    for command in commands:
-        if command in NOT_RUN:
-            continue
-        run = SHORTENED.get(command, command)
-        start = time.perf_counter()
-        proc = subprocess.run(["bash", "-c", run], cwd=work, env=env(), capture_output=True, text=True, timeout=300)
-        timings.append(f"{time.perf_counter() - start:5.1f} s  {run}")
-        if proc.returncode != 0:
-            failures.append(f"exit {proc.returncode}: {run}\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
-    print("\n".join(timings))
+    runs = [SHORTENED.get(command, command) for command in commands if command not in NOT_RUN]
+    failures = run_commands(runs, work, timeout=300)
     assert not failures, "README commands failed:\n\n" + "\n\n".join(failures)
     # the outputs the README promises
     assert (work / "runs" / "online" / "online_log.csv").is_file()
@@ -186,15 +190,10 @@ def shorten_zoo_command(command: str) -> str:
 @pytest.mark.skipif(os.environ.get("VAFN_DOCS_COMMANDS") != "1", reason="several minutes: set VAFN_DOCS_COMMANDS=1")
 def test_docs_zoo_commands_run(tmp_path):
     work = scratch(tmp_path)
-    failures, timings = [], []
-    for command in bash_commands((ROOT / "docs" / "zoo.md").read_text(encoding="utf-8")):
-        if any(marker in command for marker in ZOO_NOT_RUN) or shlex.split(command)[0] != "python":
-            continue
-        run = shorten_zoo_command(command)
-        start = time.perf_counter()
-        proc = subprocess.run(["bash", "-c", run], cwd=work, env=env(), capture_output=True, text=True, timeout=600)
-        timings.append(f"{time.perf_counter() - start:5.1f} s  {run}")
-        if proc.returncode != 0:
-            failures.append(f"exit {proc.returncode}: {run}\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
-    print("\n".join(timings))
+    runs = [
+        shorten_zoo_command(command)
+        for command in bash_commands((ROOT / "docs" / "zoo.md").read_text(encoding="utf-8"))
+        if not any(marker in command for marker in ZOO_NOT_RUN) and shlex.split(command)[0] == "python"
+    ]
+    failures = run_commands(runs, work, timeout=600)
     assert not failures, "docs/zoo.md commands failed:\n\n" + "\n\n".join(failures)
