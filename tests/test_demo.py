@@ -111,3 +111,27 @@ def test_expand_inputs_keeps_command_line_order_and_reads_folders(tmp_path: Path
     assert [(i.kind, i.label) for i in inputs] == [("code", "1"), ("code", "a.txt"), ("image", "b.png"),
                                                     ("code", "3,2")]
     assert inputs[1].value == "2,3"
+
+
+class _Slow:
+    """Delegates to the real generator after a delay longer than the whole step budget takes to simulate."""
+
+    def __init__(self, generator: Any, delay_s: float) -> None:
+        self.generator = generator
+        self.delay_s = delay_s
+
+    def transcribe(self, **kwargs: Any) -> Any:
+        import time
+
+        time.sleep(self.delay_s)
+        return self.generator.transcribe(**kwargs)
+
+
+def test_demo_waits_for_a_slow_reader_instead_of_spending_its_steps(tmp_path: Path) -> None:
+    from vafn_media import InstructionGenerator
+
+    generator = _Slow(InstructionGenerator.load(warm=False), delay_s=1.5)
+    inputs = demo.expand_inputs([("code", "2")])
+    result = demo.run_demo(inputs, tmp_path, generator=generator, interval=0, max_steps=60, video="none",
+                           progress=False)
+    assert [o.status for o in result.outcomes] == ["completed"], result.outcomes

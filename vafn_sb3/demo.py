@@ -31,6 +31,11 @@ EXAMPLE_REST = (("image", (1, 3)), ("code", (3, 2)))
 EXAMPLE_NO_SPEECH = (("code", (2, 3, 1)), ("image", (1, 3)), ("image", (3, 2)))
 #: Steps the video keeps running after the last instruction settled (so its final state is visible).
 TAIL_STEPS = 24
+#: While the arms are idle and an input is still being read, wait (poll period, s) instead of spending control steps
+#: (the simulation runs faster than real time, so a slow first transcription would otherwise use up --max-steps),
+#: at most this long (s) per input.
+READER_POLL_S = 0.01
+READER_WAIT_S = 60.0
 
 
 class DemoInputError(ValueError):
@@ -295,6 +300,9 @@ def run_demo(
                 outcome.submit_step, outcome.status = step, "transcribing"
                 submitted_at[next_input] = time.perf_counter()
                 next_input += 1
+            if _arms_wait_for_reader(outcomes, submitted_at):
+                time.sleep(READER_POLL_S)
+                continue
             info = controller.step()
             step += 1
             _update_from_log(controller.log, enqueued, submitted_at, started)
@@ -360,6 +368,16 @@ def _notes(stream_env: Any, enqueued: Sequence[Outcome], outcomes: Sequence[Outc
         line = "queue empty: holding" if not waiting else "starting next instruction"
     done = sum(o.status == "completed" for o in outcomes)
     return [f"{line} | queued {waiting} | done {done}/{len(outcomes)}"]
+
+
+def _arms_wait_for_reader(outcomes: Sequence[Outcome], submitted_at: dict[int, float]) -> bool:
+    """True while nothing is queued or running and an input submitted under ``READER_WAIT_S`` ago is being read."""
+    if any(o.status in ("queued", "running") for o in outcomes):
+        return False
+    now = time.perf_counter()
+    return any(
+        o.status == "transcribing" and now - submitted_at.get(i, now) < READER_WAIT_S for i, o in enumerate(outcomes)
+    )
 
 
 def plot_timeline(controller: Any, outcomes: Sequence[Outcome], path: Path, n_steps: int) -> Path:
