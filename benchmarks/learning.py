@@ -117,7 +117,7 @@ def main() -> None:
         if args.save is not None:
             model.save(args.save / f"{name}_seed{seed}")
         with curves.open("w", newline="") as handle:  # rewritten after every seed
-            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+            writer = csv.DictWriter(handle, fieldnames=list(dict.fromkeys(k for r in rows for k in r)), restval="nan")
             writer.writeheader()
             writer.writerows(rows)
     seeds = sorted({row["seed"] for row in rows})

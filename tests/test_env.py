@@ -16,6 +16,7 @@ from vafn_gym import (
     InstructionBenchmark,
     MultiArmEnv,
     ScriptedController,
+    episode_rates,
     run_episode,
 )
 from vafn_gym.constants import (
@@ -270,6 +271,24 @@ def test_reward_kwargs():
         env.close()
     assert totals["default"]["success"] and totals["bonus only"]["success"]
     assert totals["bonus only"]["return"] == 5.0 and totals["default"]["return"] > 5.0
+
+
+def test_reward_terms_split_the_reward():
+    """``info["reward_terms"]`` sums to each step's reward; the benchmark rows carry the return split by term."""
+    env = gym.make(REACH, instruction="2,1", inactive_arms="policy")
+    env.reset(seed=0)
+    rewards, infos = drive_to_centre(env, 60)
+    for reward, info in zip(rewards, infos):
+        assert sum(info["reward_terms"].values()) == pytest.approx(reward, abs=1e-9)
+    assert {"progress", "precision", "home_progress", "collision"} <= set(infos[-1]["reward_terms"])
+    assert any(info["reward_terms"]["home_progress"] < 0 for info in infos), "arms pushed from home lose home progress"
+    env.close()
+    rows = InstructionBenchmark(REACH, 1, 3, n_test=2).evaluate(ScriptedController.for_env(gym.make(REACH)))
+    rates = episode_rates(rows)
+    assert rates["success"] == 1.0
+    terms = [name for name in rates if name.startswith("return_")]
+    assert "return_progress" in terms and "return_home_progress" not in terms  # "hold" mode has no home term
+    assert sum(rates[name] for name in terms) == pytest.approx(rates["return"], abs=1e-6)
 
 
 def drive_to_centre(env: gym.Env, steps: int) -> tuple[list[float], list[dict]]:

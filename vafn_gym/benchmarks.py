@@ -92,19 +92,22 @@ def run_episode(policy: Any, env: gym.Env, seed: int | None, deterministic: bool
 
     A policy with a ``reset()`` method (e.g. :class:`ScriptedController`) is reset first.
 
-    :return: ``return``, ``success`` (1.0/0.0), ``collision`` (any arm-arm contact), ``steps``, ``waypoints_reached``.
+    :return: ``return``, ``success`` (1.0/0.0), ``collision`` (any arm-arm contact), ``steps``, ``waypoints_reached``
+        and ``return_terms`` (the return split by reward term, from ``info["reward_terms"]`` where the env reports it).
     """
     reset = getattr(policy, "reset", None)
     if callable(reset):
         reset()
     obs, _ = env.reset(seed=seed)
-    total, steps, collided = 0.0, 0, False
+    total, steps, collided, terms = 0.0, 0, False, {}
     while True:
         action, _ = policy.predict(obs, deterministic=deterministic)
         obs, reward, terminated, truncated, info = env.step(action)
         total += float(reward)
         steps += 1
         collided |= bool(info.get("collision", False))
+        for name, value in info.get("reward_terms", {}).items():
+            terms[name] = terms.get(name, 0.0) + float(value)
         if terminated or truncated:
             return {
                 "return": total,
@@ -112,16 +115,28 @@ def run_episode(policy: Any, env: gym.Env, seed: int | None, deterministic: bool
                 "collision": float(collided),
                 "steps": steps,
                 "waypoints_reached": int(info.get("waypoint_index", 0)),
+                "return_terms": terms,
             }
 
 
 def episode_rates(rows: list[dict[str, Any]]) -> dict[str, float]:
-    """Mean ``success``, ``collision``, ``episode_steps`` and reached-waypoint fraction of :meth:`evaluate` rows."""
+    """Mean success, collision, episode steps, reached-waypoint fraction, return and return per reward term of rows.
+
+    :param rows: :meth:`InstructionBenchmark.evaluate` rows; the per-term means (``return_<term>``) cover the terms
+        every row reports.
+    """
     if not rows:
         raise ValueError("no evaluation rows")
-    return {
+    rates = {
         "success": float(np.mean([r["success"] for r in rows])),
         "collision": float(np.mean([r["collision"] for r in rows])),
         "episode_steps": float(np.mean([r["steps"] for r in rows])),
         "waypoint_fraction": float(np.mean([r["waypoints_reached"] / max(r["length"], 1) for r in rows])),
     }
+    if all("return" in r for r in rows):
+        rates["return"] = float(np.mean([r["return"] for r in rows]))
+        terms = [r.get("return_terms", {}) for r in rows]
+        for name in terms[0]:
+            if all(name in t for t in terms):
+                rates[f"return_{name}"] = float(np.mean([t[name] for t in terms]))
+    return rates

@@ -119,6 +119,8 @@ class InstructionTask:
         self.waypoint_index = 0
         self.steps = 0
         self.collided = False
+        #: The last step's reward split by term (its values sum to the reward); reported in ``info["reward_terms"]``.
+        self.reward_terms: dict[str, float] = {}
 
     # --- targets ---
     def resolve(self, instruction: Instruction, rng: np.random.Generator) -> Instruction:
@@ -133,6 +135,7 @@ class InstructionTask:
         self.waypoint_index = 0
         self.steps = 0
         self.collided = False
+        self.reward_terms = {}
 
     @property
     def active_arm(self) -> int | None:
@@ -188,20 +191,28 @@ class InstructionTask:
                 reached = 1
                 self.waypoint_index += 1
         if self.reward_type == "sparse":
+            self.reward_terms = {"waypoint": float(reached), "collision": -float(first_contact)}
             return float(reached) - float(first_contact)
         inactive = [arm for arm in self.layout.arm_ids if arm != active]
-        reward = weights.progress_weight * progress + weights.waypoint_bonus * reached
-        reward += weights.precision_weight * float(log_progress)
+        terms = {
+            "progress": weights.progress_weight * progress,
+            "precision": weights.precision_weight * float(log_progress),
+            "waypoint": weights.waypoint_bonus * reached,
+        }
         if self.inactive_arms == "policy" and weights.home_progress_weight and inactive:
             home_progress = [
                 np.linalg.norm(before[arm] - self.homes[arm]) - np.linalg.norm(after[arm] - self.homes[arm])
                 for arm in inactive
             ]
-            reward += weights.home_progress_weight * float(np.sum(home_progress))
+            terms["home_progress"] = weights.home_progress_weight * float(np.sum(home_progress))
         if weights.hold_weight and inactive:
-            reward -= weights.hold_weight * float(np.mean([np.linalg.norm(after[a] - self.homes[a]) for a in inactive]))
-        reward -= weights.collision_penalty * float(first_contact) + weights.proximity_penalty * float(too_close)
-        return float(reward)
+            terms["hold"] = -weights.hold_weight * float(
+                np.mean([np.linalg.norm(after[a] - self.homes[a]) for a in inactive])
+            )
+        terms["collision"] = -weights.collision_penalty * float(first_contact)
+        terms["proximity"] = -weights.proximity_penalty * float(too_close)
+        self.reward_terms = terms
+        return float(sum(terms.values()))
 
     def info(self, distances: np.ndarray, contact: bool) -> dict[str, Any]:
         """The task part of the env's ``info``."""
@@ -213,4 +224,5 @@ class InstructionTask:
             "waypoint_index": self.waypoint_index,
             "instruction": self.instruction,
             "distances": distances,
+            "reward_terms": dict(self.reward_terms),
         }
