@@ -12,7 +12,13 @@ from stable_baselines3.common.save_util import recursive_getattr
 
 import vafn_gym  # noqa: F401  (registers the env IDs)
 from vafn_sb3.common.adaptation import Adaptable, evaluate_adaptation, run_episode
-from vafn_sb3.common.agents import AgentLayout, SharedAgentSACPolicy, per_agent_sum, substitute_agent_actions
+from vafn_sb3.common.agents import (
+    AgentLayout,
+    SharedAgentSACPolicy,
+    nearest_neighbour,
+    per_agent_sum,
+    substitute_agent_actions,
+)
 from vafn_sb3.maac import MAAC, MAACPolicy
 from vafn_sb3.maddpg import MADDPG, MADDPGPolicy
 from vafn_sb3.mappo import MAPPO, MAPPOPolicy
@@ -105,11 +111,11 @@ def lr_schedule(_):
     return 1e-3
 
 
-def untrained_policies(n_agents, agent_ids=True):
+def untrained_policies(n_agents, agent_ids=True, neighbours=False):
     """Each decentralised-actor policy, built on ``n_agents``' joint spaces."""
     th.manual_seed(SEED)
     observation_space, action_space = joint_spaces(n_agents)
-    kwargs = dict(agent_ids=agent_ids)
+    kwargs = dict(agent_ids=agent_ids, neighbours=neighbours)
     return {
         "MAPPO": MAPPOPolicy(observation_space, action_space, lr_schedule, net_arch=TINY, **kwargs),
         "MADDPG": MADDPGPolicy(observation_space, action_space, lr_schedule, net_arch=TINY, **kwargs),
@@ -150,6 +156,45 @@ def test_actions_have_zero_jacobian_wrt_other_agents_observations(n_agents, agen
                     assert block.abs().sum() > 0, f"{name}: agent {i}'s action ignores its own observation"
                 else:
                     assert th.equal(block, th.zeros_like(block)), f"{name}: agent {i}'s action reads agent {j}'s obs"
+
+
+def test_nearest_neighbour_summary():
+    positions = th.tensor([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0], [0.0, -0.1, 0.0]])
+    local = th.cat([positions, th.rand(3, 2)], dim=-1).unsqueeze(0)  # one batch row, 3 agents, [p, d, phase]
+    summary = nearest_neighbour(local)[0]
+    th.testing.assert_close(summary[0], th.tensor([0.0, -0.1, 0.0, 0.1]))  # agent 0's nearest is agent 2
+    th.testing.assert_close(summary[1], th.tensor([-0.3, 0.0, 0.0, 0.3]))  # agent 1's nearest is agent 0
+    th.testing.assert_close(summary[2], th.tensor([0.0, 0.1, 0.0, 0.1]))
+    assert th.equal(nearest_neighbour(local[:, :1]), th.zeros(1, 1, 4))
+
+
+@pytest.mark.parametrize("n_agents", [3, 4])
+def test_neighbour_inputs_read_only_the_nearest_other_agents_position(n_agents):
+    """With ``neighbours=True`` agent i also reads the position (and nothing else) of its nearest other agent."""
+    obs = th.rand(1, n_agents * OBS_PER_AGENT)
+    nearest = nearest_neighbour(obs.view(1, n_agents, OBS_PER_AGENT))[0]
+    for name, actor in actor_means(untrained_policies(n_agents, agent_ids=False, neighbours=True)).items():
+        jacobian = th.autograd.functional.jacobian(lambda o, actor=actor: actor(o)[0], obs)[:, 0, :]
+        for i in range(n_agents):
+            positions = obs.view(n_agents, OBS_PER_AGENT)[:, :3]
+            distances = (positions - positions[i]).norm(dim=-1)
+            distances[i] = float("inf")
+            j_near = int(distances.argmin())
+            assert th.isclose(nearest[i, 3], distances[j_near])
+            for j in range(n_agents):
+                block = jacobian[agent_block(i, ACTION_PER_AGENT), agent_block(j, OBS_PER_AGENT)]
+                if j == j_near:
+                    assert block[:, :3].abs().sum() > 0, f"{name}: agent {i} ignores its nearest neighbour {j}"
+                    assert th.equal(block[:, 3:], th.zeros_like(block[:, 3:])), f"{name}: reads more than positions"
+                elif j != i:
+                    assert th.equal(block, th.zeros_like(block)), f"{name}: agent {i} reads agent {j}'s obs"
+
+
+def test_neighbours_option_is_saved_with_the_policy():
+    policy = untrained_policies(3, neighbours=True)["MTSAC shared"]
+    assert policy._get_constructor_parameters()["neighbours"] is True
+    first = next(m for m in policy.actor.latent_pi.modules() if isinstance(m, th.nn.Linear))
+    assert first.in_features == OBS_PER_AGENT + 3 + 4  # own block, one-hot id of 3 agents, neighbour summary
 
 
 def test_actor_parameters_do_not_depend_on_the_number_of_agents_without_ids():

@@ -129,6 +129,31 @@ def with_agent_ids(local: th.Tensor) -> th.Tensor:
     return th.cat([local, ids], dim=-1)
 
 
+#: Observation numbers at the start of every agent's block that are its position (the end-effector's x, y, z).
+POSITION_DIMS = 3
+#: Numbers :func:`nearest_neighbour` appends per agent: the nearest other agent's relative position and its distance.
+NEIGHBOUR_DIMS = POSITION_DIMS + 1
+
+
+def nearest_neighbour(local: th.Tensor) -> th.Tensor:
+    """Per-agent summary of the other agents: ``(B, N, d)`` to ``(B, N, 4)``.
+
+    For agent ``i``: the position of the nearest other agent relative to ``i``'s own (the first
+    :data:`POSITION_DIMS` numbers of each block) and its distance. It does not depend on the number of agents, so an
+    actor that uses it still runs on other arm counts; with a single agent it is all zeros.
+    """
+    if local.shape[-2] < 2:
+        return local.new_zeros(*local.shape[:-1], NEIGHBOUR_DIMS)
+    position = local[..., :POSITION_DIMS]
+    offsets = position.unsqueeze(-3) - position.unsqueeze(-2)  # [..., i, j, :] = p_j - p_i
+    distance = offsets.norm(dim=-1)
+    n_agents = local.shape[-2]
+    distance = distance + th.eye(n_agents, dtype=local.dtype, device=local.device) * th.finfo(local.dtype).max
+    nearest = distance.argmin(dim=-1, keepdim=True)  # [..., i, 1]
+    offset = th.gather(offsets, -2, nearest.unsqueeze(-1).expand(*nearest.shape, POSITION_DIMS)).squeeze(-2)
+    return th.cat([offset, offset.norm(dim=-1, keepdim=True)], dim=-1)
+
+
 def substitute_agent_actions(others: th.Tensor, own: th.Tensor, action_per_agent: int) -> th.Tensor:
     """Joint actions for the per-agent actor losses: copy ``i`` has ``own``'s block ``i`` and ``others``' other blocks.
 
@@ -179,6 +204,7 @@ class SharedAgentMLP(nn.Module):
     :param layer_norm: on-policy-style LayerNorms (see :func:`mlp_layers`).
     :param n_agent_ids: number of agents whose one-hot id is appended to every agent's input; 0 appends none, and then
         the parameters do not depend on the number of agents.
+    :param neighbours: append :func:`nearest_neighbour` (where the nearest other agent is) to every agent's input.
     """
 
     def __init__(
@@ -188,13 +214,18 @@ class SharedAgentMLP(nn.Module):
         activation_fn: type[nn.Module] = nn.ReLU,
         layer_norm: bool = False,
         n_agent_ids: int = 0,
+        neighbours: bool = False,
     ) -> None:
         super().__init__()
         if not net_arch:
             raise ValueError("a shared agent MLP needs at least one hidden layer")
+        if neighbours and obs_per_agent < POSITION_DIMS:
+            raise ValueError(f"neighbours=True needs each agent's position in its first {POSITION_DIMS} observations")
         self.obs_per_agent = obs_per_agent
         self.n_agent_ids = n_agent_ids
-        self.net, self.latent_dim = mlp_layers(obs_per_agent + n_agent_ids, net_arch, activation_fn, layer_norm)
+        self.neighbours = neighbours
+        in_features = obs_per_agent + n_agent_ids + (NEIGHBOUR_DIMS if neighbours else 0)
+        self.net, self.latent_dim = mlp_layers(in_features, net_arch, activation_fn, layer_norm)
 
     def forward(self, obs: th.Tensor) -> th.Tensor:
         """Per-agent latents ``(B, N, h)`` of joint observations ``(B, N * d)``."""
@@ -206,6 +237,8 @@ class SharedAgentMLP(nn.Module):
                     "build it with agent_ids=False to run it on another number of agents"
                 )
             local = with_agent_ids(local)
+        if self.neighbours:
+            local = th.cat([local, nearest_neighbour(local)], dim=-1)
         return self.net(local)
 
 
@@ -265,11 +298,14 @@ class _SharedAgentActorMixin:
     net_arch: list[int]
     activation_fn: type[nn.Module]
 
-    def _build_agent_mlp(self, layout: AgentLayout | None, agent_ids: bool) -> SharedAgentMLP:
+    def _build_agent_mlp(self, layout: AgentLayout | None, agent_ids: bool, neighbours: bool) -> SharedAgentMLP:
         self.layout = layout or AgentLayout.from_spaces(self.observation_space, self.action_space)
         self.agent_ids = agent_ids
+        self.neighbours = neighbours
         n_agent_ids = self.layout.n_agents if agent_ids else 0
-        return SharedAgentMLP(self.layout.obs_per_agent, self.net_arch, self.activation_fn, n_agent_ids=n_agent_ids)
+        return SharedAgentMLP(
+            self.layout.obs_per_agent, self.net_arch, self.activation_fn, n_agent_ids=n_agent_ids, neighbours=neighbours
+        )
 
 
 class SquashedAgentActor(_SharedAgentActorMixin, SACActor):
@@ -281,12 +317,16 @@ class SquashedAgentActor(_SharedAgentActorMixin, SACActor):
 
     :param layout: the per-agent layout (inferred from the spaces when None).
     :param agent_ids: append a one-hot agent id to every agent's input.
+    :param neighbours: append where the nearest other agent is (:func:`nearest_neighbour`) to every agent's input.
     """
 
-    def __init__(self, *args: Any, layout: AgentLayout | None = None, agent_ids: bool = True, **kwargs: Any) -> None:
+    def __init__(
+        self, *args: Any, layout: AgentLayout | None = None, agent_ids: bool = True, neighbours: bool = False,
+        **kwargs: Any,
+    ) -> None:
         super().__init__(*args, **kwargs)
         _require_flat_features(self.features_extractor, self.use_sde)
-        self.latent_pi = self._build_agent_mlp(layout, agent_ids)
+        self.latent_pi = self._build_agent_mlp(layout, agent_ids, neighbours)
         self.mu = AgentHead(self.latent_pi.latent_dim, self.layout.action_per_agent)
         self.log_std = AgentHead(self.latent_pi.latent_dim, self.layout.action_per_agent)  # type: ignore[assignment]
 
@@ -311,12 +351,16 @@ class DeterministicAgentActor(_SharedAgentActorMixin, TD3Actor):
 
     :param layout: the per-agent layout (inferred from the spaces when None).
     :param agent_ids: append a one-hot agent id to every agent's input.
+    :param neighbours: append where the nearest other agent is (:func:`nearest_neighbour`) to every agent's input.
     """
 
-    def __init__(self, *args: Any, layout: AgentLayout | None = None, agent_ids: bool = True, **kwargs: Any) -> None:
+    def __init__(
+        self, *args: Any, layout: AgentLayout | None = None, agent_ids: bool = True, neighbours: bool = False,
+        **kwargs: Any,
+    ) -> None:
         super().__init__(*args, **kwargs)
         _require_flat_features(self.features_extractor)
-        latent = self._build_agent_mlp(layout, agent_ids)
+        latent = self._build_agent_mlp(layout, agent_ids, neighbours)
         self.mu = nn.Sequential(latent, AgentHead(latent.latent_dim, self.layout.action_per_agent), nn.Tanh())
 
 
@@ -330,6 +374,8 @@ class AgentLayoutPolicyMixin:
     :param action_per_agent: action numbers per agent (default: 3, or ``action_dim // n_agents`` given ``n_agents``).
     :param agent_ids: append a one-hot agent id to the shared actor's input; False makes the actor's parameters
         independent of the number of agents.
+    :param neighbours: append where the nearest other agent is (:func:`nearest_neighbour`) to the shared actor's
+        input, so each arm can see another coming close (the arms move themselves in ``inactive_arms="policy"``).
     """
 
     def __init__(
@@ -341,6 +387,7 @@ class AgentLayoutPolicyMixin:
         obs_per_agent: int | None = None,
         action_per_agent: int | None = None,
         agent_ids: bool = True,
+        neighbours: bool = False,
         **kwargs: Any,
     ) -> None:
         # Set before the SB3 constructor, whose _build creates the actor from them.
@@ -348,6 +395,7 @@ class AgentLayoutPolicyMixin:
             observation_space, action_space, n_agents, obs_per_agent, action_per_agent
         )
         self.agent_ids = bool(agent_ids)
+        self.neighbours = bool(neighbours)
         super().__init__(observation_space, action_space, *args, **kwargs)  # type: ignore[call-arg]
 
     @property
@@ -356,13 +404,13 @@ class AgentLayoutPolicyMixin:
         return self.agent_layout.n_agents if self.agent_ids else 0
 
     def _agent_actor_kwargs(self, actor_kwargs: dict[str, Any]) -> dict[str, Any]:
-        return {**actor_kwargs, "layout": self.agent_layout, "agent_ids": self.agent_ids}
+        return {**actor_kwargs, "layout": self.agent_layout, "agent_ids": self.agent_ids, "neighbours": self.neighbours}
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()  # type: ignore[misc]
         layout = self.agent_layout
         data.update(n_agents=layout.n_agents, obs_per_agent=layout.obs_per_agent,
-                    action_per_agent=layout.action_per_agent, agent_ids=self.agent_ids)
+                    action_per_agent=layout.action_per_agent, agent_ids=self.agent_ids, neighbours=self.neighbours)
         return data
 
 

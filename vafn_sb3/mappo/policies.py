@@ -94,6 +94,7 @@ class MAPPOExtractor(nn.Module):
     :param activation_fn: activation class.
     :param layer_norm: on-policy LayerNorms on inputs and hidden layers.
     :param agent_ids: append a one-hot agent id to every agent's actor input.
+    :param neighbours: append where the nearest other agent is to every agent's actor input.
     """
 
     def __init__(
@@ -104,10 +105,13 @@ class MAPPOExtractor(nn.Module):
         activation_fn: type[nn.Module],
         layer_norm: bool,
         agent_ids: bool = True,
+        neighbours: bool = False,
     ) -> None:
         super().__init__()
         n_agent_ids = layout.n_agents if agent_ids else 0
-        self.policy_net = SharedAgentMLP(layout.obs_per_agent, pi_arch, activation_fn, layer_norm, n_agent_ids)
+        self.policy_net = SharedAgentMLP(
+            layout.obs_per_agent, pi_arch, activation_fn, layer_norm, n_agent_ids, neighbours
+        )
         self.value_net, self.latent_dim_vf = mlp_layers(layout.obs_dim, vf_arch, activation_fn, layer_norm)
         self.agent_latent_dim = self.policy_net.latent_dim
         self.latent_dim_pi = layout.n_agents * self.agent_latent_dim
@@ -152,7 +156,7 @@ class MAPPOPolicy(AgentLayoutPolicyMixin, ActorCriticPolicy):
         else:
             pi_arch = vf_arch = list(self.net_arch)
         self.mlp_extractor = MAPPOExtractor(
-            self.agent_layout, pi_arch, vf_arch, self.activation_fn, self.layer_norm, self.agent_ids
+            self.agent_layout, pi_arch, vf_arch, self.activation_fn, self.layer_norm, self.agent_ids, self.neighbours
         )
 
     def _build(self, lr_schedule: Any) -> None:
