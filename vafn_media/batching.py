@@ -16,6 +16,8 @@ SPEC_MASK_PROBABILITY: float = 0.5
 MAX_FREQ_MASK: int = 6
 MAX_TIME_MASK: int = 8
 CUTOUT_PROBABILITY: float = 0.3
+#: Probability of a camera photo of the card (when the batch is given camera strips) instead of the rendered strip.
+CAMERA_PROBABILITY: float = 0.5
 STRETCH_RANGE: tuple[float, float] = (0.8, 1.25)
 INK_GAIN_RANGE: tuple[float, float] = (0.6, 1.0)
 INK_NOISE_SIGMA: float = 0.05
@@ -67,13 +69,17 @@ def bucketed_batches(data: TrainingData, batch_size: int, rng: np.random.Generat
 
 
 def make_batch(data: TrainingData, indices: np.ndarray, rng: np.random.Generator | None,
-               corrupted: bool = False) -> dict[str, torch.Tensor]:
+               corrupted: bool = False, camera: Sequence[Sequence[np.ndarray]] | None = None,
+               camera_probability: float = CAMERA_PROBABILITY) -> dict[str, torch.Tensor]:
     """Build a training (``rng`` given: augmented) or evaluation (``rng`` None: clean, or ``corrupted``) batch.
 
     :param data: cached items.
     :param indices: which items.
     :param rng: augmentation randomness; None disables augmentation.
     :param corrupted: without ``rng``, use every item's noisy audio and Cutout strip instead of the clean ones.
+    :param camera: training only: per copy, a camera-photo strip of every item (``camera[k][i]``); with probability
+        ``camera_probability`` an item's image is one of them instead of its rendered (or Cutout) strip.
+    :param camera_probability: see ``camera``.
     """
     audio, strips = [], []
     for i in indices:
@@ -85,6 +91,8 @@ def make_batch(data: TrainingData, indices: np.ndarray, rng: np.random.Generator
             features = data.clean_audio[i].astype(np.float32)
         use_mask = rng.random() < CUTOUT_PROBABILITY if rng is not None else corrupted
         strip = (data.masked[i] if use_mask else data.clean[i]).astype(np.float32) / INK_LEVELS
+        if rng is not None and camera is not None and rng.random() < camera_probability:
+            strip = camera[int(rng.integers(len(camera)))][i].astype(np.float32) / INK_LEVELS
         if rng is not None:
             if rng.random() < SPEC_MASK_PROBABILITY:
                 features = features.copy()

@@ -217,3 +217,86 @@ def robust_cell(transcribe: Callable[..., object], items: list[SpeechItem], cond
     return {"exact": 100.0 * exact / n, "digit": 100.0 * (1 - digits / max(1, total)), "flagged": 100.0 * flagged / n,
             "rejected": 100.0 * rejected / n, "wrong_unflagged": 100.0 * silent_wrong / n,
             "cpu_ms": 1000.0 * float(np.mean(cpu)) if cpu else 0.0}
+
+
+#: Glyph sets of the camera evaluation: name -> (source, held-out). Only the last is seen in training (reference).
+CAMERA_SETS: dict[str, tuple[str, bool]] = {
+    "unseen TrueType fonts": ("font", True),
+    "unseen Hershey fonts": ("hershey", True),
+    "unseen handwriting": ("handwritten", True),
+    "training TrueType fonts": ("font", False),
+}
+
+
+@dataclass
+class CardItem:
+    """One card of the camera evaluation: label, ink map, and the TrueType font (None for other sources)."""
+
+    arms: tuple[int, ...]
+    ink: np.ndarray
+    font: str | None
+
+
+def camera_items(glyph_set: str, count: int, seed: int) -> list[CardItem]:
+    """Cards (lengths 1-10) of one glyph set of :data:`CAMERA_SETS`; TrueType sets cycle through their fonts.
+
+    :param glyph_set: a key of :data:`CAMERA_SETS`.
+    :param count: number of cards.
+    :param seed: seed of labels and rendering.
+    """
+    from vafn_media.camera import HELDOUT_TTF_FONTS, TRAIN_TTF_FONTS, render_card_ink
+
+    source, heldout = CAMERA_SETS[glyph_set]
+    fonts = HELDOUT_TTF_FONTS if heldout else TRAIN_TTF_FONTS
+    code = list(CAMERA_SETS).index(glyph_set)
+    items = []
+    for i in range(count):
+        rng = np.random.default_rng([seed, code, i])
+        arms = tuple(int(a) for a in rng.integers(1, 4, int(rng.integers(1, 11))))
+        font = fonts[i % len(fonts)] if source == "font" else None
+        items.append(CardItem(arms, render_card_ink(arms, rng, source, heldout, font=font), font))
+    return items
+
+
+def camera_cell(transcribe: Callable[..., object], items: list[CardItem], condition: str,
+                seed: int) -> dict[str, object]:
+    """Image-only accuracy of one (glyph set, camera condition) cell.
+
+    Returns exact-sequence and per-digit accuracy (%), the share flagged ``low_confidence`` and of wrong *and*
+    unflagged results, rejections (ValueError, counted wrong), and per-font exact-match counts.
+
+    :param transcribe: ``InstructionGenerator.transcribe``.
+    :param items: from :func:`camera_items`.
+    :param condition: one of :data:`vafn_media.camera.CAMERA_CONDITIONS`.
+    :param seed: seed of the photo (palette, warp, light, noise).
+    """
+    from vafn_media.camera import CAMERA_CONDITIONS, apply_camera_condition
+
+    code = CAMERA_CONDITIONS.index(condition)
+    exact, errors, total, flagged, rejected, silent_wrong = 0, 0, 0, 0, 0, 0
+    per_font: dict[str, list[int]] = {}
+    for i, item in enumerate(items):
+        image = apply_camera_condition(item.ink, condition, np.random.default_rng([seed, i, code]))
+        try:
+            result = transcribe(image=image)
+        except ValueError:
+            result = None
+        total += len(item.arms)
+        hit = result is not None and tuple(result.instruction.arms) == item.arms
+        if item.font is not None:
+            per_font.setdefault(item.font, [0, 0])
+            per_font[item.font][0] += hit
+            per_font[item.font][1] += 1
+        if result is None:
+            rejected += 1
+            errors += len(item.arms)
+            continue
+        read = tuple(result.instruction.arms)
+        exact += hit
+        errors += min(len(item.arms), edit_distance(item.arms, read))
+        flagged += bool(result.low_confidence)
+        silent_wrong += (not hit) and not result.low_confidence
+    n = max(1, len(items))
+    return {"exact": 100.0 * exact / n, "digit": 100.0 * (1 - errors / max(1, total)),
+            "flagged": 100.0 * flagged / n, "rejected": 100.0 * rejected / n,
+            "wrong_unflagged": 100.0 * silent_wrong / n, "per_font": per_font}

@@ -34,6 +34,8 @@ _INK_LEVEL: float = 0.3
 _NOISE_CONTRAST: float = 48.0
 #: Gaussian blur kernel (pixels, at canonical scale) used only to locate the content box.
 _BOX_BLUR = 5
+#: Rows of the low-resolution copy on which the paper level is estimated (median window = its height).
+_BACKGROUND_ROWS = 9
 #: Images taller than this are first downscaled to it (speed; the output has IMAGE_HEIGHT rows).
 _WORK_HEIGHT = 4 * IMAGE_HEIGHT
 
@@ -133,11 +135,40 @@ def to_gray(image: np.ndarray) -> np.ndarray:
     return scaled
 
 
+def paper_background(gray: np.ndarray) -> np.ndarray:
+    """The paper (or board) behind the ink, as a smooth image of gray's size: a median over windows about as tall as
+    the image, taken at low resolution, so strokes are ignored but uneven light and shadows are kept.
+
+    :param gray: float32 gray image.
+    """
+    cv2 = _cv2()
+    height, width = gray.shape
+    rows = min(_BACKGROUND_ROWS, height)
+    cols = max(1, int(round(width * rows / height)))
+    small = np.clip(cv2.resize(gray, (cols, rows), interpolation=cv2.INTER_AREA), 0, 255).astype(np.uint8)
+    kernel = 2 * (rows // 2) + 1
+    padded = cv2.copyMakeBorder(small, kernel, kernel, kernel, kernel, cv2.BORDER_REFLECT)
+    smooth = cv2.medianBlur(padded, kernel)[kernel:-kernel, kernel:-kernel].astype(np.float32)
+    return cv2.resize(smooth, (width, height), interpolation=cv2.INTER_LINEAR)
+
+
+def _ink_map(gray: np.ndarray) -> np.ndarray:
+    """Ink as positive values on a zero background: gray minus its local paper level, sign chosen by polarity.
+
+    Polarity: ink is the minority, so the deviations from the paper have a long tail on the ink's side (skewness).
+    """
+    residual = gray - paper_background(gray)
+    centred = residual - float(residual.mean())
+    skew = float(np.mean(centred**3))
+    return residual if skew > 0 else -residual
+
+
 def canonical_strip(image: ImageSource) -> np.ndarray:
     """Turn an image of a digit row into the model's input: float32 (IMAGE_HEIGHT, W), ink bright on a zero background.
 
-    Steps: gray conversion, polarity from the median (the background), contrast normalisation, crop to the content
-    box plus a margin, aspect-preserving resize to IMAGE_HEIGHT rows.
+    Steps: gray conversion, subtraction of the local paper level (uneven light, tinted paper), polarity from the side
+    the ink stands out on, contrast normalisation, crop to the content box plus a margin, aspect-preserving resize to
+    IMAGE_HEIGHT rows.
 
     :param image: path, or array accepted by :func:`to_gray`.
     """
@@ -149,8 +180,7 @@ def canonical_strip(image: ImageSource) -> np.ndarray:
     if gray.shape[0] > _WORK_HEIGHT:  # work at a bounded resolution: the output is IMAGE_HEIGHT rows anyway
         width = max(1, int(round(gray.shape[1] * _WORK_HEIGHT / gray.shape[0])))
         gray = cv2.resize(gray, (width, _WORK_HEIGHT), interpolation=cv2.INTER_AREA)
-    background = float(np.median(gray))
-    ink = gray - background if background < 128 else background - gray
+    ink = _ink_map(gray)
     scale = float(np.percentile(ink, 99.5))
     if scale <= BLANK_IMAGE_STD:
         raise ValueError("image has no visible ink: no pixel stands out from the background")
@@ -162,7 +192,9 @@ def canonical_strip(image: ImageSource) -> np.ndarray:
     # content box on a resized, blurred copy so pixel noise does not count as ink
     height, width = ink.shape
     factor = IMAGE_HEIGHT / height
-    small = cv2.resize(ink, (max(1, int(round(width * factor))), IMAGE_HEIGHT), interpolation=cv2.INTER_AREA)
+    reach = int(round(1.0 / factor))  # thin strokes must survive the downscale: spread each over a small pixel
+    spread = cv2.dilate(ink, np.ones((reach, reach), np.uint8)) if reach > 1 else ink
+    small = cv2.resize(spread, (max(1, int(round(width * factor))), IMAGE_HEIGHT), interpolation=cv2.INTER_AREA)
     smooth = cv2.GaussianBlur(small, (_BOX_BLUR, _BOX_BLUR), 0)
     rows = np.flatnonzero(smooth.max(axis=1) > CONTENT_THRESHOLD)
     cols = np.flatnonzero(smooth.max(axis=0) > CONTENT_THRESHOLD)

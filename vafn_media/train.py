@@ -150,6 +150,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--cache-dir", type=Path, default=None)
     parser.add_argument("--init", type=Path, default=None,
                         help="start from this checkpoint's weights (fine-tuning) instead of a random initialisation")
+    parser.add_argument("--camera-probability", type=float, default=0.5,
+                        help="share of training images that are camera photos of cards (vafn_media.camera); > 0 also "
+                             "re-renders every item's strips with the current image code (0: cached strips only)")
+    parser.add_argument("--train-only", choices=("all", "image"), default="all",
+                        help="'image': update only the image encoder and adapter; the audio path, the shared "
+                             "projection and the decoder stay frozen, so audio readings are unchanged")
     return parser.parse_args(argv)
 
 
@@ -175,31 +181,50 @@ def main(argv=None) -> dict:
     validation = {
         split: build_cache(args.seed, split, args.val_items, cache, args.workers) for split in ("test", "heldout")
     }
+    camera = None
+    if args.camera_probability > 0:
+        from vafn_media.camera import build_image_cache
+
+        for split, data in [("train", train), *validation.items()]:
+            strips = build_image_cache(data.arms, data.lengths, args.seed, split, cache)
+            data.clean, data.masked = strips["clean"], strips["masked"]
+            if split == "train":
+                camera = strips["camera"]
     data_seconds = time.time() - started
 
     config = ModelConfig()
     model = InstructionModel(config)
     if args.init is not None:
         model.load_state_dict(torch.load(args.init, map_location="cpu", weights_only=True))
-    optimizer = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
+    trainable = list(model.parameters())
+    if args.train_only == "image":
+        trainable = [*model.encoders["image"].parameters(), *model.adapters["image"].parameters()]
+        for parameter in model.parameters():
+            parameter.requires_grad_(False)
+        for parameter in trainable:
+            parameter.requires_grad_(True)
+    optimizer = torch.optim.AdamW(trainable, lr=args.lr, weight_decay=1e-4)
     scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=args.lr, total_steps=args.steps, pct_start=0.1)
     writer = _summary_writer(args.logdir)
     history = []
     bar = tqdm(range(1, args.steps + 1), desc="training", unit="step")
     queue: list = []
     for step in bar:
+        if args.train_only == "image":  # frozen audio path: BatchNorm statistics must not move either
+            model.encoders["audio"].eval()
         if not queue:
             queue = bucketed_batches(train, args.batch_size, rng)
-        batch = make_batch(train, queue.pop(), rng)
+        batch = make_batch(train, queue.pop(), rng, camera=camera, camera_probability=args.camera_probability)
         targets, target_lengths = batch["targets"], batch["target_lengths"]
         flat_targets = torch.cat([targets[b, : int(target_lengths[b])] for b in range(len(targets))])
         losses, outputs = {}, {}
         for modality in ("audio", "image"):
-            phi, lengths = model.encode(modality, batch[modality], batch[f"{modality}_lengths"])
-            logits = model.decode(phi)
-            log_probs = logits.log_softmax(-1).transpose(0, 1)
-            losses[f"ctc_{modality}"] = F.ctc_loss(log_probs, flat_targets, lengths, target_lengths, blank=BLANK,
-                                                   zero_infinity=True)
+            with torch.set_grad_enabled(args.train_only == "all" or modality == "image"):
+                phi, lengths = model.encode(modality, batch[modality], batch[f"{modality}_lengths"])
+                logits = model.decode(phi)
+                log_probs = logits.log_softmax(-1).transpose(0, 1)
+                losses[f"ctc_{modality}"] = F.ctc_loss(log_probs, flat_targets, lengths, target_lengths,
+                                                       blank=BLANK, zero_infinity=True)
             outputs[modality] = (phi, logits, lengths)
         infonce, fused_ce, aligned = alignment_losses(model, *outputs["audio"], *outputs["image"], targets,
                                                       target_lengths, args.temperature, rng)
@@ -207,7 +232,7 @@ def main(argv=None) -> dict:
         total = losses["ctc_audio"] + losses["ctc_image"] + args.align_weight * infonce + args.fused_weight * fused_ce
         optimizer.zero_grad()
         total.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+        torch.nn.utils.clip_grad_norm_(trainable, 5.0)
         optimizer.step()
         scheduler.step()
         for name, value in losses.items():
