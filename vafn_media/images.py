@@ -158,8 +158,8 @@ def _ink_map(gray: np.ndarray) -> np.ndarray:
     Polarity: ink is the minority, so the deviations from the paper have a long tail on the ink's side (skewness).
     """
     residual = gray - paper_background(gray)
-    centred = residual - float(residual.mean())
-    skew = float(np.mean(centred**3))
+    centred = (residual - float(residual.mean())).ravel()
+    skew = float(np.dot(centred * centred, centred))  # third moment (sign only); ** 3 is 50x slower
     return residual if skew > 0 else -residual
 
 
