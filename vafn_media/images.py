@@ -199,8 +199,9 @@ def canonical_strip(image: ImageSource) -> np.ndarray:
     rows = np.flatnonzero(smooth.max(axis=1) > CONTENT_THRESHOLD)
     cols = np.flatnonzero(smooth.max(axis=0) > CONTENT_THRESHOLD)
     if rows.size and cols.size:
-        top, bottom = rows[0] / factor, (rows[-1] + 1) / factor
-        left, right = cols[0] / factor, (cols[-1] + 1) / factor
+        grown = (reach - 1) / 2.0  # the dilation widened the ink by this much on each side: take it back
+        top, bottom = rows[0] / factor + grown, (rows[-1] + 1) / factor - grown
+        left, right = cols[0] / factor + grown, (cols[-1] + 1) / factor - grown
         margin = CONTENT_MARGIN * (bottom - top)
         top, bottom = int(max(0, top - margin)), int(min(height, bottom + margin + 1))
         left, right = int(max(0, left - margin)), int(min(width, right + margin + 1))
