@@ -579,6 +579,20 @@ def test_stream_reset_goes_through_the_parents_reset():
     env.close()
 
 
+def test_stream_unseeded_reset_after_a_seeded_one_is_reproducible():
+    """reset(seed=s) then reset() gives the same arrivals every time (Gymnasium's check_env contract)."""
+    env = gym.make(STREAM, arrivals="poisson", arrival_rate=1.0, horizon=20)
+    base = env.unwrapped
+    runs = []
+    for _ in range(2):
+        env.reset(seed=3)
+        obs, _ = env.reset()
+        runs.append((obs, [item.instruction.to_code() for item in base.queue.snapshot()]))
+    assert runs[0][1], "no arrival at step 0: the test needs one"
+    assert np.array_equal(runs[0][0], runs[1][0]) and runs[0][1] == runs[1][1]
+    env.close()
+
+
 def test_stream_reset_keeps_user_items_and_drops_its_own_arrivals():
     env = gym.make(STREAM, arrivals={0: "1", 1: "2"}, auto_dequeue=False, horizon=10)
     env.reset(seed=0)

@@ -65,7 +65,6 @@ class MultiArmStreamEnv(MultiArmEnv):
         self.total_steps = 0
         self.current: QueuedInstruction | None = None
         self.started_at = 0
-        self._reset_seed: int | None = None
         self.records: list[dict[str, Any]] = []
         self.errors: list[str] = []
 
@@ -88,7 +87,9 @@ class MultiArmStreamEnv(MultiArmEnv):
         if instruction is not None:
             raise ValueError("MultiArmStreamEnv takes instructions from its queue, not from reset options")
         if self.arrival_process is not None:
-            self.arrival_process.reset(None if self._reset_seed is None else int(self.np_random.integers(2**63)))
+            # From the env's generator even on an unseeded reset, so reset(seed=s) then reset() is reproducible
+            # (Gymnasium's contract; fresh OS entropy here made step-0 arrivals differ).
+            self.arrival_process.reset(int(self.np_random.integers(2**63)))
         if self.current is not None:  # abandoned mid-way: a user's instruction goes back to the head of the queue
             settle = self.queue.ack if self.current.source == ARRIVAL_SOURCE else self.queue.nack
             settle(self.current)
@@ -101,7 +102,6 @@ class MultiArmStreamEnv(MultiArmEnv):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         """Home the arms and start holding; the info carries the stream's state."""
-        self._reset_seed = seed
         obs, info = super().reset(seed=seed, options=options)
         return obs, {**info, **self._stream_fields([])}
 
