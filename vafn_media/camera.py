@@ -15,7 +15,6 @@ This module is deliberately not part of :func:`vafn_media.dataset.cache_key`: ca
 
 from __future__ import annotations
 
-import hashlib
 import os
 from collections.abc import Sequence
 from functools import lru_cache
@@ -356,11 +355,10 @@ def camera_cache_key(seed: int, split: str, count: int) -> str:
     :param split: split name.
     :param count: number of items.
     """
-    here = Path(__file__).parent
-    digest = hashlib.sha1()
-    for name in ("camera.py", "strips.py", "images.py", "corruptions.py", "constants.py"):
-        digest.update((here / name).read_bytes())
-    return f"camera-{split}-seed{seed}-n{count}-copies{CAMERA_COPIES}-{digest.hexdigest()[:10]}"
+    from vafn_media.dataset import source_digest
+
+    digest = source_digest("camera.py", "strips.py", "images.py", "corruptions.py", "constants.py")
+    return f"camera-{split}-seed{seed}-n{count}-copies{CAMERA_COPIES}-{digest}"
 
 
 def _strip_or_blank(image: np.ndarray, labels: Sequence[int], fallback: np.ndarray | None) -> np.ndarray:

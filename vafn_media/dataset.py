@@ -221,12 +221,18 @@ def cache_key(seed: int, split: str, count: int) -> str:
     :param split: split name.
     :param count: number of items.
     """
+    digest = source_digest("dataset.py", "speech.py", "strips.py", "images.py", "corruptions.py", "constants.py",
+                           "features.py", "augment.py")
+    return f"{split}-seed{seed}-n{count}-shard{SHARD_SIZE}-{digest}"
+
+
+def source_digest(*names: str) -> str:
+    """Short SHA-1 of these ``vafn_media`` source files, in order: a cache built by other code is never reused."""
     here = Path(__file__).parent
     digest = hashlib.sha1()
-    for name in ("dataset.py", "speech.py", "strips.py", "images.py", "corruptions.py", "constants.py", "features.py",
-                 "augment.py"):
+    for name in names:
         digest.update((here / name).read_bytes())
-    return f"{split}-seed{seed}-n{count}-shard{SHARD_SIZE}-{digest.hexdigest()[:10]}"
+    return digest.hexdigest()[:10]
 
 
 def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CACHE, workers: int = 2,
