@@ -15,7 +15,8 @@ import vafn_gym  # noqa: F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark
 from vafn_sb3.common.adaptation import Adaptable, SupportSet, collect_support, evaluate_adaptation
 from vafn_sb3.maml_sac import MAMLSAC
-from vafn_sb3.maml_sac.functional import clip_gradients, inner_adapt, parameters_of, query_losses
+from vafn_sb3.maml_sac.functional import clip_gradients, inner_adapt, query_losses
+from vafn_sb3.maml_sac.policies import parameters_of
 
 #: The 3-arm joint spaces (15-D observation, 9-D action).
 OBS_DIM, ACTION_DIM = 15, 9

@@ -1,95 +1,25 @@
-"""Pure functions of parameter dicts for MAML-SAC.
+"""MAML-SAC's inner adaptation step and per-task query losses, as pure functions of parameter dicts.
 
-Actor sampling, the inner adaptation step and the per-task query loss.
-
-Parameters are plain ``{name: tensor}`` dicts applied with :func:`torch.func.functional_call`; they are never written
-into the modules. Gradients of the inner losses come from :func:`torch.func.grad`, which composes with ``vmap`` over a
-meta-batch and with ordinary autograd for the outer (meta) gradient:
+Gradients of the inner losses come from :func:`torch.func.grad`, which composes with ``vmap`` over a meta-batch and with
+ordinary autograd for the outer (meta) gradient:
 
 * first order (default): the inner gradients are detached, so ``θ' = θ - lr * sg(g)`` and the meta-gradient flows
   through the identity path only (FOMAML);
 * second order: the inner gradients keep their graph, so the meta-gradient includes the Hessian-vector terms.
 
 Which parameters each loop adapts: the inner loop adapts the critic φ (both Q-heads, a regression onto n-step targets of
-the support rewards) and then the actor θ (the SAC policy loss against the adapted critic), for ``steps`` rounds. The
-entropy coefficient, the target critic and the inner learning rates are meta-level only.
+the support rewards, see :mod:`vafn_sb3.maml_sac.nstep`) and then the actor θ (the SAC policy loss against the adapted
+critic), for ``steps`` rounds. The entropy coefficient, the target critic and the inner learning rates are meta-level
+only.
 """
 
 from __future__ import annotations
 
-import math
-
 import torch
-from stable_baselines3.sac.policies import Actor
 from torch import nn
 from torch.func import functional_call, grad
 
-#: Added inside ``log(1 - tanh(u)^2 + eps)``, as in SB3's squashed Gaussian.
-SQUASH_EPS = 1e-6
-_HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
-
-Params = dict[str, torch.Tensor]
-
-
-class ActorDistribution(nn.Module):
-    """``forward(obs) -> (mean, log_std)`` of an SB3 SAC :class:`Actor`.
-
-    So that ``functional_call`` can re-parametrise it.
-
-    Its parameter names are the actor's, prefixed with ``"actor."``.
-
-    :param actor: the SB3 SAC actor (not copied).
-    """
-
-    def __init__(self, actor: Actor) -> None:
-        super().__init__()
-        if actor.use_sde:
-            raise ValueError("MAML-SAC does not support gSDE actors (use_sde=True)")
-        self.actor = actor
-
-    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Mean and clamped log-std of the pre-squash Gaussian."""
-        mean, log_std, _ = self.actor.get_action_dist_params(obs)
-        return mean, log_std
-
-
-def parameters_of(module: nn.Module, detach: bool = False) -> Params:
-    """``{name: parameter}`` of ``module`` (detached clones when ``detach``)."""
-    if detach:
-        return {name: p.detach().clone() for name, p in module.named_parameters()}
-    return dict(module.named_parameters())
-
-
-def detached(params: Params) -> Params:
-    """The same dict with every tensor detached (shares storage)."""
-    return {name: p.detach() for name, p in params.items()}
-
-
-def sample_action(
-    actor: ActorDistribution, params: Params, obs: torch.Tensor, deterministic: bool = False
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Squashed-Gaussian action in [-1, 1] and its log-probability, reparameterised (SB3's formula, no distributions).
-
-    :param actor: the functional actor wrapper.
-    :param params: its parameters.
-    :param obs: ``(batch, obs_dim)`` observations.
-    :param deterministic: use the mean instead of a sample.
-    :return: ``(actions, log_prob)`` of shapes ``(batch, act_dim)`` and ``(batch,)``.
-    """
-    mean, log_std = functional_call(actor, params, (obs,))
-    std = log_std.exp()
-    noise = torch.zeros_like(mean) if deterministic else torch.randn_like(mean)
-    gaussian = mean + std * noise
-    actions = torch.tanh(gaussian)
-    log_prob = (-0.5 * noise.pow(2) - log_std - _HALF_LOG_2PI).sum(-1)
-    log_prob = log_prob - torch.log(1.0 - actions.pow(2) + SQUASH_EPS).sum(-1)
-    return actions, log_prob
-
-
-def min_q(critic: nn.Module, params: Params, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-    """Minimum over the critic's Q-heads, shape ``(batch,)``."""
-    q_values = functional_call(critic, params, (obs, actions))
-    return torch.min(torch.cat(q_values, dim=-1), dim=-1).values
+from vafn_sb3.maml_sac.policies import ActorDistribution, Params, detached, min_q, sample_action
 
 
 def critic_regression_loss(

@@ -47,14 +47,14 @@ from vafn_gym.instructions import Instruction
 from vafn_gym.tasks import TaskSampler
 from vafn_sb3.common.adaptation import SupportSet, collect_support
 from vafn_sb3.common.serialization import AtomicSaveMixin
-from vafn_sb3.maml_sac.functional import (
+from vafn_sb3.maml_sac.functional import inner_adapt, query_losses
+from vafn_sb3.maml_sac.nstep import nstep_targets, stack_supports
+from vafn_sb3.maml_sac.policies import (
     ActorDistribution,
+    AdaptedSACPolicy,
     Params,
     detached,
-    inner_adapt,
-    min_q,
     parameters_of,
-    query_losses,
     sample_action,
 )
 
@@ -64,41 +64,6 @@ SelfMAMLSAC = TypeVar("SelfMAMLSAC", bound="MAMLSAC")
 META_BATCH_MODES = ("vmap", "loop")
 #: Completed episodes remembered for the pre/post-adaptation TensorBoard scalars.
 EPISODE_STATS_WINDOW = 100
-
-
-class AdaptedSACPolicy:
-    """A SAC actor with adapted parameters, usable like ``model.predict`` (returned by :meth:`MAMLSAC.adapt`).
-
-    The parameters live in a dict, applied with ``functional_call``; the model's modules are not modified (they are
-    re-parametrised only for the duration of a call, so do not call ``model.predict`` concurrently from another thread).
-
-    :param policy: the model's SB3 policy (observation preprocessing, action unscaling).
-    :param actor: functional wrapper of the model's actor.
-    :param actor_params: adapted actor parameters.
-    :param critic_params: adapted critic parameters (kept for inspection).
-    """
-
-    def __init__(
-        self, policy: BasePolicy, actor: ActorDistribution, actor_params: Params, critic_params: Params
-    ) -> None:
-        self.policy = policy
-        self.actor = actor
-        self.actor_params = actor_params
-        self.critic_params = critic_params
-
-    def predict(
-        self,
-        observation: np.ndarray,
-        state: Any = None,
-        episode_start: np.ndarray | None = None,
-        deterministic: bool = True,
-    ) -> tuple[np.ndarray, None]:
-        """Action(s) of the adapted policy for one observation or a batch (``state``/``episode_start`` are ignored)."""
-        obs_tensor, vectorized = self.policy.obs_to_tensor(observation)
-        with torch.no_grad():
-            actions, _ = sample_action(self.actor, self.actor_params, obs_tensor, deterministic=deterministic)
-        actions = self.policy.unscale_action(actions.cpu().numpy().reshape((-1, *self.policy.action_space.shape)))
-        return (actions if vectorized else actions[0]), None
 
 
 class MAMLSAC(AtomicSaveMixin, SAC):
@@ -279,31 +244,12 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         self._last_episode_starts = np.ones((self.env.num_envs,), dtype=bool)
 
     def _support_tensors(self, supports: Sequence[SupportSet]) -> dict[str, torch.Tensor]:
-        """Stack support sets (equal lengths) into ``(M, n, ...)`` tensors, with the n-step plan of their targets."""
-        plans = [support.nstep_plan(self.gamma, self.inner_n_step) for support in supports]
-
-        def as_tensor(arrays: list[np.ndarray], dtype: torch.dtype = torch.float32) -> torch.Tensor:
-            return torch.as_tensor(np.stack(arrays), dtype=dtype, device=self.device)
-
-        return {
-            "observations": as_tensor([s.observations for s in supports]),
-            "actions": as_tensor([self.policy.scale_action(s.actions) for s in supports]),
-            "next_observations": as_tensor([s.next_observations for s in supports]),
-            "reward_sums": as_tensor([p[0] for p in plans]),
-            "stop_index": as_tensor([p[1] for p in plans], torch.long),
-            "bootstrap_discount": as_tensor([p[2] for p in plans]),
-        }
+        return stack_supports(supports, self.gamma, self.inner_n_step, self.policy.scale_action, self.device,
+                              self._vec_normalize_env)
 
     def _support_targets(self, support: dict[str, torch.Tensor], ent_coef: torch.Tensor) -> torch.Tensor:
-        """n-step targets ``(M, n)`` of stacked supports, bootstrapped from the target critic and the meta-actor."""
-        with torch.no_grad():
-            next_obs = support["next_observations"].flatten(0, 1)
-            actor_params = detached(parameters_of(self.actor_distribution))
-            next_actions, next_log_prob = sample_action(self.actor_distribution, actor_params, next_obs)
-            target_params = parameters_of(self.critic_target)
-            values = min_q(self.critic_target, target_params, next_obs, next_actions) - ent_coef * next_log_prob
-            values = values.view(support["reward_sums"].shape)
-            return support["reward_sums"] + support["bootstrap_discount"] * values.gather(1, support["stop_index"])
+        return nstep_targets(support, self.actor_distribution, detached(parameters_of(self.actor_distribution)),
+                             self.critic_target, parameters_of(self.critic_target), ent_coef)
 
     def adapted_parameters(self, supports: Sequence[SupportSet], steps: int) -> list[tuple[Params, Params]]:
         """First-order, graph-free adaptation of (actor, critic) parameters on each support set; the model is untouched.
