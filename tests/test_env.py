@@ -31,6 +31,7 @@ from vafn_gym.constants import (
 REACH = "VAFN/ThreeArmReach-v1"
 STREAM = "VAFN/ThreeArmStream-v1"
 MULTI = "VAFN/MultiArmReach-v1"
+HIDDEN = "VAFN/ThreeArmReachHidden-v1"
 
 
 @pytest.fixture
@@ -207,6 +208,40 @@ def test_goal_visible_observes_each_arms_current_target():
     env.close()
 
 
+def test_history_blocks_hold_each_arms_recent_readings_newest_first():
+    plain, history = gym.make(HIDDEN), gym.make(HIDDEN, history=3)
+    assert history.observation_space.shape == (3 * 5 * 3,)
+    assert history.unwrapped.obs_slice(2) == slice(15, 30)
+    rng = np.random.default_rng(0)
+    actions = [rng.uniform(-1, 1, 9).astype(np.float32) for _ in range(4)]
+    readings = [plain.reset(seed=5)[0].reshape(3, 5)]
+    obs, _ = history.reset(seed=5)
+    assert np.array_equal(obs.reshape(3, 3, 5), np.repeat(readings[0][:, None], 3, axis=1))  # padded with the first
+    for action in actions:
+        readings.append(plain.step(action)[0].reshape(3, 5))
+        obs = history.step(action)[0]
+    expected = np.stack([readings[-1], readings[-2], readings[-3]], axis=1)  # (arm, newest first, reading)
+    assert np.array_equal(obs.reshape(3, 3, 5), expected)
+    assert np.array_equal(history.unwrapped.observe(), obs)  # observe() does not push a reading
+    assert np.array_equal(history.step(actions[0])[0].reshape(3, 3, 5)[:, 1], readings[-1])
+    obs, _ = history.reset(seed=6)  # a reset forgets the previous episode
+    assert np.array_equal(obs.reshape(3, 3, 5)[:, 0], obs.reshape(3, 3, 5)[:, 2])
+    plain.close()
+    history.close()
+
+
+def test_history_env_passes_the_checkers_and_trains_the_per_arm_actor():
+    from vafn_sb3 import SAC
+
+    env = gym.make(HIDDEN, history=4)
+    gym_check_env(env.unwrapped, skip_render_check=True)
+    model = SAC("SharedAgentPolicy", env, learning_starts=10, batch_size=8, policy_kwargs={"net_arch": [8]}, seed=0)
+    model.learn(20)
+    assert model.actor.layout.obs_per_agent == 20
+    assert model.predict(env.reset(seed=0)[0])[0].shape == (9,)
+    env.close()
+
+
 # --- inactive arms ---
 def scripted_with_noise(env: gym.Env, noise: str, seed: int = 0):
     """The scripted action, with the entries of every non-active arm replaced by random numbers or zeros."""
@@ -380,6 +415,8 @@ def test_safety_margin_penalises_proximity_without_counting_a_collision():
         (STREAM, dict(arrivals="bad"), "arrivals"),
         (STREAM, dict(auto_dequeue="no"), "auto_dequeue"),
         (MULTI, dict(max_length=11), "max_length"),
+        (REACH, dict(history=0), "history"),
+        (REACH, dict(history=2.5), "history"),
         (MULTI, dict(split_seed=1.5), "split_seed"),
     ],
 )
@@ -482,6 +519,7 @@ def test_set_task_through_vec_env_method():
         (REACH, {}),
         ("VAFN/ThreeArmReachHidden-v1", {}),
         ("VAFN/ThreeArmReachGoal-v1", {}),
+        ("VAFN/ThreeArmReachHidden-v1", {"history": 3}),
     ],
 )
 def test_scripted_controller_solves_held_out_instructions(env_id, env_kwargs):

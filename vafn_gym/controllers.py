@@ -42,22 +42,24 @@ class ScriptedController:
 
     :param homes: rest end-effector point per arm id (1..N); :meth:`for_env` reads them from an env.
     :param observe_goal: observations carry each arm's current target (8 numbers per arm instead of 5).
+    :param history: readings per arm block (the env's ``history``; only the newest is used).
     """
 
-    def __init__(self, homes: Mapping[int, np.ndarray], observe_goal: bool = False) -> None:
+    def __init__(self, homes: Mapping[int, np.ndarray], observe_goal: bool = False, history: int = 1) -> None:
         self.homes = {int(arm): np.asarray(point, dtype=np.float64) for arm, point in homes.items()}
         self.arm_ids = tuple(sorted(self.homes))
         if self.arm_ids != tuple(range(1, len(self.arm_ids) + 1)):
             raise ValueError(f"homes must be keyed by arm ids 1..N, got {list(self.homes)}")
         self.observe_goal = observe_goal
-        self.obs_per_arm = OBS_PER_ARM_WITH_GOAL if observe_goal else OBS_PER_ARM
+        self.obs_per_arm = (OBS_PER_ARM_WITH_GOAL if observe_goal else OBS_PER_ARM) * history
         self.reset()
 
     @classmethod
     def for_env(cls, env: gym.Env) -> ScriptedController:
         """A controller for ``env`` (any wrapper around a :class:`MultiArmEnv`)."""
         base = env.unwrapped
-        return cls({arm_id: arm.home for arm_id, arm in base.arms.items()}, observe_goal=base.observe_goal)
+        return cls({arm_id: arm.home for arm_id, arm in base.arms.items()}, observe_goal=base.observe_goal,
+                   history=base.history)
 
     def reset(self) -> None:
         """Forget the target estimate (call at every episode start)."""

@@ -50,6 +50,8 @@ SETTLE_STEPS = 20
 MARKER_RADIUS = 0.02
 TABLE_COLOUR = (0.55, 0.4, 0.25, 1.0)
 MAX_RENDER_SIZE = 4096
+#: Largest ``history`` (readings per arm block).
+MAX_HISTORY = 64
 
 
 class MultiArmEnv(gym.Env):
@@ -62,6 +64,10 @@ class MultiArmEnv(gym.Env):
     :param targets: where the targets of arm-only waypoints come from: "default" (each arm's fixed point),
         "per_arm" (one hidden target per arm per instruction, reused on every visit) or "per_waypoint".
     :param observe_goal: append each arm's current target to its observation block (8 numbers per arm instead of 5).
+    :param history: readings per arm block, newest first: ``history=4`` gives each arm its last four
+        ``[position, distance, phase]`` readings (20 numbers instead of 5; the block starts with the current reading, so
+        code that reads a block's first numbers is unaffected). A memoryless policy can then estimate where a hidden
+        target lies from how its distance changed as it moved. Readings before the episode start repeat the first one.
     :param inactive_arms: "hold": the env returns every non-active arm home and holds it there, those arms' action
         entries are ignored (``info["ignored_arms"]``), and the active arm is held until the others are clear of the
         shared region (``info["gated"]``); "policy": every arm's action counts and inactive arms are rewarded for
@@ -93,6 +99,7 @@ class MultiArmEnv(gym.Env):
         layout: ArmLayout | None = None,
         targets: str = "default",
         observe_goal: bool = False,
+        history: int = 1,
         inactive_arms: str = "hold",
         instruction: Any = None,
         split: str = "train",
@@ -118,6 +125,7 @@ class MultiArmEnv(gym.Env):
         self.layout = layout
         self.targets = check_choice("targets", targets, TARGET_MODES)
         self.observe_goal = check_bool("observe_goal", observe_goal)
+        self.history = check_int("history", history, 1, MAX_HISTORY)
         self.inactive_arms = check_choice("inactive_arms", inactive_arms, INACTIVE_ARM_MODES)
         check_choice("split", split, SPLITS)
         check_choice("reward_type", reward_type, REWARD_TYPES)
@@ -162,13 +170,15 @@ class MultiArmEnv(gym.Env):
         homes = {arm_id: arm.home for arm_id, arm in self.arms.items()}
         self.task = InstructionTask(layout, self.targets, self.inactive_arms, reward_type, reward, homes)
 
-        self.obs_per_arm = OBS_PER_ARM_WITH_GOAL if self.observe_goal else OBS_PER_ARM
+        self.reading_size = OBS_PER_ARM_WITH_GOAL if self.observe_goal else OBS_PER_ARM
+        self.obs_per_arm = self.reading_size * self.history
+        self._readings: np.ndarray | None = None  # (history, n_arms, reading_size), newest first
         self.action_space = spaces.Box(-1.0, 1.0, shape=(layout.action_dim,), dtype=np.float32)
         self.observation_space = self._make_observation_space()
         self.gated = False
         #: The settings that define this env's world, task and reward (a twin env is ``MultiArmEnv(**world_kwargs)``).
         self.world_kwargs: dict[str, Any] = dict(
-            layout=layout, robot=self.robot, targets=self.targets, observe_goal=self.observe_goal,
+            layout=layout, robot=self.robot, targets=self.targets, observe_goal=self.observe_goal, history=self.history,
             inactive_arms=self.inactive_arms, reward_type=reward_type, reward_kwargs=reward.as_dict(),
             terminate_on_collision=self.terminate_on_collision, safety_margin=self.safety_margin, n_substeps=n_substeps,
             split_seed=split_seed,
@@ -191,7 +201,7 @@ class MultiArmEnv(gym.Env):
         high = np.concatenate([WORKSPACE_HIGH, [MAX_DISTANCE, PHASE_COMPLETED]])
         if self.observe_goal:
             low, high = np.concatenate([low, WORKSPACE_LOW]), np.concatenate([high, WORKSPACE_HIGH])
-        low, high = np.tile(low, self.n_arms), np.tile(high, self.n_arms)
+        low, high = np.tile(low, self.n_arms * self.history), np.tile(high, self.n_arms * self.history)
         return spaces.Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
 
     def obs_slice(self, arm: int) -> slice:
@@ -201,21 +211,36 @@ class MultiArmEnv(gym.Env):
     def _positions(self) -> dict[int, np.ndarray]:
         return {arm_id: arm.ee_position for arm_id, arm in self.arms.items()}
 
-    def _observation(self, positions: Mapping[int, np.ndarray], distances: np.ndarray) -> np.ndarray:
-        obs = np.zeros(self.observation_space.shape, dtype=np.float64)
-        for arm, distance in zip(self.layout.arm_ids, distances):
-            block = obs[self.obs_slice(arm)]
-            block[POS_SLICE] = positions[arm]
-            block[DIST_INDEX] = distance
-            block[PHASE_INDEX] = self.task.phase(arm)
+    def _reading(self, positions: Mapping[int, np.ndarray], distances: np.ndarray) -> np.ndarray:
+        """This step's ``(n_arms, reading_size)`` readings: position, distance, phase (and goal) of every arm."""
+        reading = np.zeros((self.n_arms, self.reading_size), dtype=np.float64)
+        for row, (arm, distance) in enumerate(zip(self.layout.arm_ids, distances)):
+            reading[row, POS_SLICE] = positions[arm]
+            reading[row, DIST_INDEX] = distance
+            reading[row, PHASE_INDEX] = self.task.phase(arm)
             if self.observe_goal:
-                block[GOAL_SLICE] = self.task.current_target(arm)
+                reading[row, GOAL_SLICE] = self.task.current_target(arm)
+        return reading
+
+    def _observation(
+        self, positions: Mapping[int, np.ndarray], distances: np.ndarray, record: bool = True
+    ) -> np.ndarray:
+        """The observation for ``positions``; ``record`` pushes this reading into the history (once per control step),
+        otherwise it only stands in for the newest one."""
+        reading = self._reading(positions, distances)
+        if self._readings is None:
+            readings = np.repeat(reading[None], self.history, axis=0)
+        else:
+            readings = np.concatenate([reading[None], self._readings[:-1] if record else self._readings[1:]])
+        if record:
+            self._readings = readings
+        obs = readings.transpose(1, 0, 2).reshape(-1)  # arm by arm, newest reading first within each arm's block
         return np.clip(obs, self.observation_space.low, self.observation_space.high).astype(np.float32)
 
     def observe(self) -> np.ndarray:
         """The current observation, without stepping (e.g. after a controller starts an instruction)."""
         positions = self._positions()
-        return self._observation(positions, self.task.distances(positions))
+        return self._observation(positions, self.task.distances(positions), record=False)
 
     # --- the task, as Meta-World exposes it ---
     @property
@@ -252,6 +277,7 @@ class MultiArmEnv(gym.Env):
             self.sampler.seed(int(self.np_random.integers(2**63)))
         for arm in self.arms.values():
             arm.reset()
+        self._readings = None
         self._begin_episode(instruction)
         positions = self._positions()
         distances = self.task.distances(positions)
