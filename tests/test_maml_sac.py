@@ -8,7 +8,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import VecNormalize
 from torch.func import functional_call
 
 import vafn_gym  # noqa: F401  (registers the env IDs)
@@ -141,6 +143,36 @@ def test_learn_vecenv_tensorboard_save_load(tmp_path):
     loaded_state = loaded.inner_lr_optimizer.state_dict()["state"][0]
     assert torch.equal(saved_state["exp_avg"], loaded_state["exp_avg"])
     loaded.learn(100, reset_num_timesteps=False, log_interval=None)  # continues; None = zoo "--log-interval -2"
+
+
+class ActingPolicyLog(BaseCallback):
+    """Records, at every env step, whether the model acted with an adapted policy."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.adapted: list[bool] = []
+
+    def _on_step(self) -> bool:
+        self.adapted.append(self.model.acting_policy is not None)
+        return True
+
+
+def test_meta_iteration_collects_through_sb3_and_stores_original_observations():
+    """Support then query rollouts go through SB3's collect_rollouts and _store_transition, so under VecNormalize the
+    replay, query and support data hold the env's own observations (the old rollout stored normalised ones)."""
+    venv = VecNormalize(make_vec_env(ENV_ID, n_envs=1, env_kwargs=ENV_KWARGS, seed=0), gamma=0.99)
+    model = tiny_model(venv, n_support=16, n_query=16)  # one meta-iteration: 2 tasks x (16 support + 16 query)
+    log = ActingPolicyLog()
+    model.learn(64, callback=log, log_interval=None)
+    assert model.meta_iterations == 1 and model.acting_policy is None
+    assert log.adapted == [False] * 32 + [True] * 32  # sample tasks -> both supports -> adapt -> both queries
+    low, high = venv.observation_space.low - 1e-5, venv.observation_space.high + 1e-5
+    stored = model.replay_buffer.observations[: model.replay_buffer.pos, 0]
+    queries = [b.observations[: b.pos, 0] for b in model.query_buffers.values()]
+    for observations in [stored, *queries, *(s.observations for s in model.support_sets.values())]:
+        assert ((observations >= low) & (observations <= high)).all()
+    assert any(np.allclose(s.observations, stored[:16]) for s in model.support_sets.values())
+    assert any(np.allclose(q, stored[32:48]) for q in queries)
 
 
 @pytest.mark.parametrize("sac_gradient_steps, expected", [(0, 0), (5, 5), (-1, 64)])

@@ -1,22 +1,24 @@
-"""MAML-SAC: Soft Actor-Critic meta-trained with MAML inner/outer updates over a task distribution.
-
-Algo key ``maml_sac``.
+"""MAML-SAC (algo key ``maml_sac``): Soft Actor-Critic meta-trained with MAML inner/outer updates over a task pool.
 
 Not to be confused with "Meta-SAC" (arXiv 2007.01932), which meta-learns SAC's entropy temperature only.
 
-One meta-iteration (after an optional warm-up of plain multi-task SAC):
+After an optional warm-up of plain multi-task SAC, one meta-iteration (:meth:`MAMLSAC._meta_iteration`):
 
 1. sample ``meta_batch_size`` training tasks from a fixed pool;
-2. per task: ``env_method("set_task", task)`` on every env, reset, collect ``n_support`` transitions with the stochastic
-   meta-policy π_θ into the task's support set (replaced every iteration), adapt without a graph (``inner_steps``
-   rounds of critic-then-actor SGD, see :mod:`vafn_sb3.maml_sac.functional`), collect ``n_query`` transitions with the
-   adapted stochastic policy π_θ' into the task's query replay buffer (a FIFO kept across iterations);
-3. ``outer_steps`` meta-gradient steps: per task, re-adapt on its whole support set (with the inner graph when
-   ``second_order``), evaluate SAC's critic and actor losses of (θ'_i, φ'_i) on a query minibatch, average over tasks,
-   step SB3's own actor/critic optimisers (which hold θ and φ), the entropy coefficient (on the adapted actors'
-   log-probs) and, if learned, the inner step sizes; Polyak-update the target critic;
-4. ``sac_gradient_steps`` plain SAC gradient steps on the whole replay buffer (every transition of every task so far),
-   so that the outer steps' narrow meta-batch data do not make the meta-policy forget the tasks it already solves.
+2. support: per task, ``env_method("set_task", task)`` on every env, reset, and ``n_support`` transitions of the
+   stochastic meta-policy π_θ through SB3's ``collect_rollouts`` (the task's support set, replaced every iteration);
+3. inner adaptation: per task, ``inner_steps`` graph-free rounds of critic-then-actor SGD on its support set
+   (:mod:`vafn_sb3.maml_sac.functional`);
+4. query: per task, ``n_query`` transitions of the adapted stochastic policy π_θ' into the task's query replay buffer
+   (a FIFO kept across iterations);
+5. outer steps (:meth:`MAMLSAC.meta_train`): ``outer_steps`` meta-gradient steps; per task, re-adapt on the support set
+   (with the inner graph when ``second_order``), evaluate SAC's critic and actor losses of (θ'_i, φ'_i) on a query
+   minibatch, average over tasks, step SB3's own actor/critic optimisers (which hold θ and φ), the entropy coefficient
+   (on the adapted actors' log-probs) and, if learned, the inner step sizes; Polyak-update the target critic.
+
+``learn`` then takes ``sac_gradient_steps`` plain SAC gradient steps on the whole replay buffer (every transition of
+every task so far), so that the outer steps' narrow meta-batch data do not make the meta-policy forget the tasks it
+already solves. Every env step goes to the replay buffer through SB3's ``_store_transition``.
 
 Parameters adapted by the inner loop: the critic φ (both Q-heads) and the actor θ. Meta-level only: the entropy
 coefficient α, the target critic φ̄ and the inner step sizes.
@@ -33,30 +35,26 @@ import numpy as np
 import torch
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
+from stable_baselines3.common.type_aliases import (
+    GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq, TrainFrequencyUnit,
+)
 from stable_baselines3.common.utils import polyak_update
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.sac import SAC
-from stable_baselines3.sac.policies import CnnPolicy, MlpPolicy, MultiInputPolicy
-
-from vafn_sb3.sac.policies import SharedAgentPolicy
+from stable_baselines3.sac.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, SACPolicy
 from torch.func import vmap
 
 from vafn_gym.instructions import Instruction
 from vafn_gym.tasks import TaskSampler
 from vafn_sb3.common.adaptation import SupportSet, collect_support
 from vafn_sb3.common.serialization import AtomicSaveMixin
+from vafn_sb3.maml_sac.buffers import TaskRolloutBuffer
 from vafn_sb3.maml_sac.functional import inner_adapt, query_losses
 from vafn_sb3.maml_sac.nstep import nstep_targets, stack_supports
-from vafn_sb3.maml_sac.policies import (
-    ActorDistribution,
-    AdaptedSACPolicy,
-    Params,
-    detached,
-    parameters_of,
-    sample_action,
-)
+from vafn_sb3.maml_sac.policies import ActorDistribution, AdaptedSACPolicy, Params, detached, parameters_of
+from vafn_sb3.sac.policies import SharedAgentPolicy
 
 SelfMAMLSAC = TypeVar("SelfMAMLSAC", bound="MAMLSAC")
 
@@ -69,7 +67,8 @@ EPISODE_STATS_WINDOW = 100
 class MAMLSAC(AtomicSaveMixin, SAC):
     """SAC meta-trained with MAML over the env's task distribution; :meth:`adapt` specialises it to one task.
 
-    Takes every :class:`~stable_baselines3.SAC` argument (``kwargs``), plus:
+    Takes SB3's :class:`~stable_baselines3.SAC` arguments (``learning_rate`` to ``device``: same names, defaults and
+    meaning; they drive the warm-up, the plain SAC steps and the outer steps; ``use_sde`` must stay False), plus:
 
     :param policy: SAC policy (``"SharedAgentPolicy"``: one actor shared by every arm, or ``"MlpPolicy"``); no gSDE,
         no BatchNorm.
@@ -102,8 +101,6 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         (one call per task).
     :param max_grad_norm: clip the meta-gradient of actor and critic to this norm.
     :param task_seed: seed of the task pool and of the meta-batch draws.
-    :param kwargs: every other :class:`~stable_baselines3.SAC` argument (``learning_rate``, ``batch_size``, ``gamma``,
-        ``tau``, ``ent_coef``, ``policy_kwargs``, ``tensorboard_log``, ``seed``, ``verbose``, ...).
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -115,8 +112,33 @@ class MAMLSAC(AtomicSaveMixin, SAC):
 
     def __init__(
         self,
-        policy: str | type[BasePolicy],
+        policy: str | type[SACPolicy],
         env: GymEnv | str | None,
+        learning_rate: float | Schedule = 3e-4,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 100,
+        batch_size: int = 256,
+        tau: float = 0.005,
+        gamma: float = 0.99,
+        train_freq: int | tuple[int, str] = 1,
+        gradient_steps: int = 1,
+        action_noise: ActionNoise | None = None,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        optimize_memory_usage: bool = False,
+        n_steps: int = 1,
+        ent_coef: str | float = "auto",
+        target_update_interval: int = 1,
+        target_entropy: str | float = "auto",
+        use_sde: bool = False,
+        sde_sample_freq: int = -1,
+        use_sde_at_warmup: bool = False,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: torch.device | str = "auto",
         meta_batch_size: int = 5,
         n_support: int = 200,
         n_query: int = 200,
@@ -139,11 +161,10 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         max_grad_norm: float = 10.0,
         task_seed: int = 0,
         _init_setup_model: bool = True,
-        **kwargs: Any,
     ) -> None:
-        for name, value in (("meta_batch_size", meta_batch_size), ("n_support", n_support), ("n_query", n_query),
-                            ("outer_steps", outer_steps), ("n_train_tasks", n_train_tasks),
-                            ("query_buffer_size", query_buffer_size)):
+        counts = {"meta_batch_size": meta_batch_size, "n_support": n_support, "n_query": n_query,
+                  "outer_steps": outer_steps, "n_train_tasks": n_train_tasks, "query_buffer_size": query_buffer_size}
+        for name, value in counts.items():
             if int(value) < 1:
                 raise ValueError(f"{name} must be >= 1, got {value}")
         if inner_steps < 0 or warmup_steps < 0:
@@ -154,10 +175,22 @@ class MAMLSAC(AtomicSaveMixin, SAC):
             raise ValueError(f"inner learning rates must be > 0, got {inner_actor_lr}, {inner_critic_lr}")
         if inner_n_step is not None and inner_n_step < 1:
             raise ValueError(f"inner_n_step must be >= 1 or None, got {inner_n_step}")
+        if inner_max_grad_norm is not None and inner_max_grad_norm <= 0:
+            raise ValueError(f"inner_max_grad_norm must be > 0 or None, got {inner_max_grad_norm}")
         if meta_batch_mode not in META_BATCH_MODES:
             raise ValueError(f"meta_batch_mode must be one of {META_BATCH_MODES}, got {meta_batch_mode!r}")
-        if kwargs.get("use_sde", False):
+        if use_sde:
             raise ValueError("MAML-SAC does not support use_sde=True")
+        super().__init__(
+            policy, env, learning_rate=learning_rate, buffer_size=buffer_size, learning_starts=learning_starts,
+            batch_size=batch_size, tau=tau, gamma=gamma, train_freq=train_freq, gradient_steps=gradient_steps,
+            action_noise=action_noise, replay_buffer_class=replay_buffer_class,
+            replay_buffer_kwargs=replay_buffer_kwargs, optimize_memory_usage=optimize_memory_usage, n_steps=n_steps,
+            ent_coef=ent_coef, target_update_interval=target_update_interval, target_entropy=target_entropy,
+            use_sde=use_sde, sde_sample_freq=sde_sample_freq, use_sde_at_warmup=use_sde_at_warmup,
+            stats_window_size=stats_window_size, tensorboard_log=tensorboard_log, policy_kwargs=policy_kwargs,
+            verbose=verbose, seed=seed, device=device, _init_setup_model=False,
+        )
         self.meta_batch_size = int(meta_batch_size)
         self.n_support = int(n_support)
         self.n_query = int(n_query)
@@ -165,8 +198,6 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         self.inner_actor_lr = float(inner_actor_lr)
         self.inner_critic_lr = float(inner_critic_lr)
         self.inner_n_step = inner_n_step
-        if inner_max_grad_norm is not None and inner_max_grad_norm <= 0:
-            raise ValueError(f"inner_max_grad_norm must be > 0 or None, got {inner_max_grad_norm}")
         self.inner_max_grad_norm = None if inner_max_grad_norm is None else float(inner_max_grad_norm)
         self.inner_centered_critic = bool(inner_centered_critic)
         self.learn_inner_lr = bool(learn_inner_lr)
@@ -183,14 +214,12 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         self.task_seed = int(task_seed)
         self.meta_iterations = 0
         self.task_rng = np.random.default_rng(task_seed)
-        super().__init__(policy, env, _init_setup_model=False, **kwargs)
         if _init_setup_model:
             self._setup_model()
 
     # --- setup, save/load ---
     def _setup_model(self) -> None:
-        """SAC's setup, then the functional actor, the (log) inner step sizes and their optimiser, the per-task
-        buffers."""
+        """SAC's setup, the functional actor, the (log) inner step sizes and their optimiser, and the per-task state."""
         super()._setup_model()
         self.actor_distribution = ActorDistribution(self.actor)
         initial = torch.tensor([self.inner_actor_lr, self.inner_critic_lr], device=self.device).log()
@@ -202,12 +231,13 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         self.query_buffers: dict[int, ReplayBuffer] = {}
         self.pre_adaptation_episodes: deque[dict[str, float]] = deque(maxlen=EPISODE_STATS_WINDOW)
         self.post_adaptation_episodes: deque[dict[str, float]] = deque(maxlen=EPISODE_STATS_WINDOW)
+        self.acting_policy: AdaptedSACPolicy | None = None
 
     def _excluded_save_params(self) -> list[str]:
-        """Aliases and the per-task buffers (rebuilt on load) are not pickled."""
+        """Aliases and the per-task state (rebuilt on load) are not pickled."""
         return super()._excluded_save_params() + [
             "actor_distribution", "support_sets", "query_buffers", "pre_adaptation_episodes",
-            "post_adaptation_episodes",
+            "post_adaptation_episodes", "acting_policy",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
@@ -237,11 +267,13 @@ class MAMLSAC(AtomicSaveMixin, SAC):
             self.train_tasks = sampler.fixed_set(self.n_train_tasks, seed=self.task_seed)
         return self.train_tasks
 
-    def _switch_task(self, task: Instruction | None) -> None:
-        """Give every env ``task`` and start fresh episodes, so that no episode straddles two tasks."""
-        self.env.env_method("set_task", task)
-        self._last_obs = self.env.reset()
-        self._last_episode_starts = np.ones((self.env.num_envs,), dtype=bool)
+    def _query_buffer(self, task_id: int) -> ReplayBuffer:
+        if task_id not in self.query_buffers:
+            self.query_buffers[task_id] = ReplayBuffer(
+                self.query_buffer_size, self.observation_space, self.action_space, device=self.device,
+                n_envs=self.n_envs, optimize_memory_usage=False, handle_timeout_termination=True,
+            )
+        return self.query_buffers[task_id]
 
     def _support_tensors(self, supports: Sequence[SupportSet]) -> dict[str, torch.Tensor]:
         return stack_supports(supports, self.gamma, self.inner_n_step, self.policy.scale_action, self.device,
@@ -259,8 +291,8 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         :return: per task, detached adapted ``(actor_params, critic_params)``.
         """
         ent_coef = self._ent_coef()
-        tensors = self._support_tensors(supports)
-        targets = self._support_targets(tensors, ent_coef)
+        support = self._support_tensors(supports)
+        targets = self._support_targets(support, ent_coef)
         actor_lr, critic_lr = self.log_inner_lrs.detach().exp()
         adapted = []
         with torch.no_grad():
@@ -268,128 +300,136 @@ class MAMLSAC(AtomicSaveMixin, SAC):
                 actor_params, critic_params = inner_adapt(
                     self.actor_distribution, self.critic,
                     parameters_of(self.actor_distribution, detach=True), parameters_of(self.critic, detach=True),
-                    tensors["observations"][i], tensors["actions"][i], targets[i],
+                    support["observations"][i], support["actions"][i], targets[i],
                     ent_coef, actor_lr, critic_lr, steps, second_order=False,
                     max_grad_norm=self.inner_max_grad_norm, centered=self.inner_centered_critic,
                 )
                 adapted.append((detached(actor_params), detached(critic_params)))
         return adapted
 
-    # --- data collection ---
-    def _rollout(
-        self, n_transitions: int, actor_params: Params | None, callback: BaseCallback,
-        query_buffer: ReplayBuffer | None, episode_stats: deque,
-    ) -> tuple[SupportSet, bool]:
-        """Step every env with the stochastic policy (meta if ``actor_params`` is None) for ``n_transitions`` in total.
+    # --- data collection: SB3's collect_rollouts, one task at a time ---
+    def _sample_action(
+        self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """SAC's exploration action, or during a query rollout a sample of the adapted policy ``acting_policy``."""
+        if self.acting_policy is None:
+            return super()._sample_action(learning_starts, action_noise, n_envs)
+        action, _ = self.acting_policy.predict(self._last_obs, deterministic=False)
+        return action, self.policy.scale_action(action)
 
-        Transitions go to the main replay buffer and, if given, ``query_buffer``; completed episodes go to
-        ``episode_stats``. Returns the transitions (env by env, so episodes are contiguous) and whether to continue.
+    def _task_rollout(
+        self,
+        task: Instruction,
+        n_transitions: int,
+        callback: BaseCallback,
+        acting_policy: AdaptedSACPolicy | None = None,
+        query_buffer: ReplayBuffer | None = None,
+    ) -> TaskRolloutBuffer | None:
+        """``n_transitions`` (rounded up to whole vectorised steps) on ``task`` through SB3's ``collect_rollouts``.
+
+        Every env gets ``task`` and starts a fresh episode, so that no episode straddles two tasks. Acts with
+        ``acting_policy`` (the meta-policy if ``None``; never SB3's uniform warm-up actions); the transitions go to the
+        replay buffer and ``query_buffer``. Returns them (with the stats of the completed episodes), or ``None`` if a
+        callback stopped training.
         """
-        n_envs = self.env.num_envs
-        steps = -(-n_transitions // n_envs)
-        params = actor_params if actor_params is not None else detached(parameters_of(self.actor_distribution))
-        columns: dict[str, list] = {name: [] for name in SupportSet.__dataclass_fields__}
-        episode_returns = np.zeros(n_envs)
-        episode_collided = np.zeros(n_envs, dtype=bool)
-        self.policy.set_training_mode(False)
-        for _ in range(steps):
-            obs_tensor, _ = self.policy.obs_to_tensor(self._last_obs)
-            with torch.no_grad():
-                scaled, _ = sample_action(self.actor_distribution, params, obs_tensor)
-            scaled = scaled.cpu().numpy()
-            actions = self.policy.unscale_action(scaled)
-            new_obs, rewards, dones, infos = self.env.step(actions)
-            self.num_timesteps += n_envs
-            callback.update_locals(locals())
-            if not callback.on_step():
-                return SupportSet(**{k: np.asarray(v, dtype=np.float32) for k, v in columns.items()}), False
-            self._update_info_buffer(infos, dones)
-            next_obs = new_obs.copy()
-            for i, done in enumerate(dones):
-                if done and infos[i].get("terminal_observation") is not None:
-                    next_obs[i] = infos[i]["terminal_observation"]
-            for buffer in (self.replay_buffer, query_buffer):
-                if buffer is not None:
-                    buffer.add(self._last_obs, next_obs, scaled, rewards, dones, infos)
-            terminated = [bool(d) and not info.get("TimeLimit.truncated", False) for d, info in zip(dones, infos)]
-            collisions = np.array([info.get("collision", False) for info in infos], dtype=bool)
-            columns["observations"].append(self._last_obs)
-            columns["actions"].append(actions)
-            columns["rewards"].append(rewards)
-            columns["next_observations"].append(next_obs)
-            columns["terminated"].append(terminated)
-            columns["episode_ends"].append(dones)
-            columns["successes"].append([info.get("is_success", False) for info in infos])
-            columns["collisions"].append(collisions)
-            episode_returns += rewards
-            episode_collided |= collisions
-            for i, done in enumerate(dones):
-                if done:
-                    episode_stats.append({"return": float(episode_returns[i]),
-                                          "success": float(infos[i].get("is_success", False)),
-                                          "collision": float(episode_collided[i])})
-                    episode_returns[i], episode_collided[i] = 0.0, False
-            self._last_obs = new_obs
-            self._last_episode_starts = dones
-            self._episode_num += int(np.sum(dones))
-            self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
-        # (steps, n_envs, ...) -> (n_envs * steps, ...), env by env; the budget cuts each env's last episode.
-        arrays = {k: np.swapaxes(np.asarray(v, dtype=np.float32), 0, 1) for k, v in columns.items()}
-        arrays["episode_ends"][:, -1] = 1.0
-        return SupportSet(**{k: v.reshape(n_envs * steps, *v.shape[2:]) for k, v in arrays.items()}), True
-
-    def _query_buffer(self, task_id: int) -> ReplayBuffer:
-        if task_id not in self.query_buffers:
-            self.query_buffers[task_id] = ReplayBuffer(
-                self.query_buffer_size, self.observation_space, self.action_space, device=self.device,
-                n_envs=self.n_envs, optimize_memory_usage=False, handle_timeout_termination=True,
-            )
-        return self.query_buffers[task_id]
+        self.env.env_method("set_task", task)
+        self._last_obs = self.env.reset()
+        if self._vec_normalize_env is not None:
+            self._last_original_obs = self._vec_normalize_env.get_original_obs()
+        buffers = [self.replay_buffer] if query_buffer is None else [self.replay_buffer, query_buffer]
+        task_buffer = TaskRolloutBuffer(buffers, self.policy.unscale_action, self.n_envs)
+        train_freq = TrainFreq(-(-n_transitions // self.n_envs), TrainFrequencyUnit.STEP)
+        self.acting_policy = acting_policy
+        try:
+            rollout = self.collect_rollouts(self.env, callback, train_freq, task_buffer, learning_starts=0)
+        finally:
+            self.acting_policy = None
+        return task_buffer if rollout.continue_training else None
 
     # --- meta-training ---
+    def _meta_iteration(self, callback: BaseCallback) -> RolloutReturn:
+        """Sample tasks → collect support → inner adapt → collect query → outer steps (returned like a rollout).
+
+        :return: the env steps and episodes it took, and False if a callback stopped training.
+        """
+        steps_before, episodes_before = self.num_timesteps, self._episode_num
+
+        def done(continue_training: bool) -> RolloutReturn:
+            return RolloutReturn(self.num_timesteps - steps_before, self._episode_num - episodes_before,
+                                 continue_training)
+
+        pool = self._task_pool()
+        size = self.meta_batch_size
+        task_ids = [int(t) for t in self.task_rng.choice(len(pool), size=size, replace=size > len(pool))]
+        supports = []
+        for task_id in task_ids:
+            rollout = self._task_rollout(pool[task_id], self.n_support, callback)
+            if rollout is None:
+                return done(False)
+            supports.append(rollout.support_set())
+            self.support_sets[task_id] = supports[-1]
+            self.pre_adaptation_episodes.extend(rollout.episodes)
+        adapted = self.adapted_parameters(supports, self.inner_steps)
+        for task_id, (actor_params, critic_params) in zip(task_ids, adapted):
+            policy = AdaptedSACPolicy(self.policy, self.actor_distribution, actor_params, critic_params)
+            rollout = self._task_rollout(pool[task_id], self.n_query, callback, policy, self._query_buffer(task_id))
+            if rollout is None:
+                return done(False)
+            self.post_adaptation_episodes.extend(rollout.episodes)
+        self.meta_train(task_ids)
+        self.meta_iterations += 1
+        return done(True)
+
+    def _query_batch(self, task_ids: Sequence[int]) -> dict[str, torch.Tensor]:
+        """One query minibatch per task, stacked to ``(M, batch_size, ...)``."""
+        samples = [self.query_buffers[t].sample(self.batch_size, env=self._vec_normalize_env) for t in task_ids]
+        return {
+            "observations": torch.stack([s.observations for s in samples]),
+            "actions": torch.stack([s.actions for s in samples]),
+            "next_observations": torch.stack([s.next_observations for s in samples]),
+            "rewards": torch.stack([s.rewards.squeeze(-1) for s in samples]),
+            "dones": torch.stack([s.dones.squeeze(-1) for s in samples]),
+        }
+
+    def _meta_losses(
+        self, support: dict[str, torch.Tensor], query: dict[str, torch.Tensor], ent_coef: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Meta-batch means of the query critic and actor losses after adaptation, and the adapted log-probs."""
+        actor_params, critic_params = parameters_of(self.actor_distribution), parameters_of(self.critic)
+        target_params = parameters_of(self.critic_target)
+        actor_lr, critic_lr = self.log_inner_lrs.exp()
+
+        def task_objective(task_support: dict[str, torch.Tensor], task_query: dict[str, torch.Tensor]):
+            return query_losses(
+                self.actor_distribution, self.critic, actor_params, critic_params, target_params, task_support,
+                task_query, ent_coef, actor_lr, critic_lr, self.inner_steps, self.gamma, self.second_order,
+                self.inner_max_grad_norm, self.inner_centered_critic,
+            )
+
+        if self.meta_batch_mode == "vmap":
+            critic_loss, actor_loss, log_prob = vmap(task_objective, randomness="different")(support, query)
+        else:
+            per_task = [
+                task_objective({k: v[i] for k, v in support.items()}, {k: v[i] for k, v in query.items()})
+                for i in range(len(query["rewards"]))
+            ]
+            critic_loss, actor_loss, log_prob = (torch.stack(column) for column in zip(*per_task))
+        return critic_loss.mean(), actor_loss.mean(), log_prob
+
     def meta_train(self, task_ids: Sequence[int]) -> None:
         """``outer_steps`` meta-gradient steps on the support sets and query buffers of ``task_ids``."""
         self.policy.set_training_mode(True)
         self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
         support = self._support_tensors([self.support_sets[t] for t in task_ids])
-        actor_params = parameters_of(self.actor_distribution)
-        critic_params = parameters_of(self.critic)
-        target_params = parameters_of(self.critic_target)
         optimizers = [self.actor.optimizer, self.critic.optimizer]
         if self.inner_lr_optimizer is not None:
             optimizers.append(self.inner_lr_optimizer)
         critic_losses, actor_losses, ent_coefs, ent_coef_losses = [], [], [], []
         for _ in range(self.outer_steps):
             ent_coef = self._ent_coef()
-            support["targets"] = self._support_targets(support, ent_coef)
-            samples = [self.query_buffers[t].sample(self.batch_size, env=self._vec_normalize_env) for t in task_ids]
-            query = {
-                "observations": torch.stack([s.observations for s in samples]),
-                "actions": torch.stack([s.actions for s in samples]),
-                "next_observations": torch.stack([s.next_observations for s in samples]),
-                "rewards": torch.stack([s.rewards.squeeze(-1) for s in samples]),
-                "dones": torch.stack([s.dones.squeeze(-1) for s in samples]),
-            }
-            actor_lr, critic_lr = self.log_inner_lrs.exp()
-
-            def task_objective(task_support: dict[str, torch.Tensor], task_query: dict[str, torch.Tensor]):
-                return query_losses(
-                    self.actor_distribution, self.critic, actor_params, critic_params, target_params, task_support,
-                    task_query, ent_coef, actor_lr, critic_lr,  # noqa: B023 - called within this iteration only
-                    self.inner_steps, self.gamma, self.second_order,
-                    self.inner_max_grad_norm, self.inner_centered_critic,
-                )
-
-            inner_support = {k: support[k] for k in ("observations", "actions", "targets")}
-            if self.meta_batch_mode == "vmap":
-                critic_loss, actor_loss, log_prob = vmap(task_objective, randomness="different")(inner_support, query)
-            else:
-                per_task = [
-                    task_objective({k: v[i] for k, v in inner_support.items()}, {k: v[i] for k, v in query.items()})
-                    for i in range(len(task_ids))
-                ]
-                critic_loss, actor_loss, log_prob = (torch.stack(column) for column in zip(*per_task))
-            critic_loss, actor_loss = critic_loss.mean(), actor_loss.mean()
+            inner_support = {"observations": support["observations"], "actions": support["actions"],
+                             "targets": self._support_targets(support, ent_coef)}
+            critic_loss, actor_loss, log_prob = self._meta_losses(inner_support, self._query_batch(task_ids), ent_coef)
 
             for optimizer in optimizers:
                 optimizer.zero_grad()
@@ -424,31 +464,12 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         self.logger.record("train/inner_actor_lr", actor_lr)
         self.logger.record("train/inner_critic_lr", critic_lr)
 
-    def _meta_iteration(self, callback: BaseCallback) -> bool:
-        """Collect support and query data for one meta-batch, then take the outer steps; False if a callback stopped."""
-        pool = self._task_pool()
-        task_ids = self.task_rng.choice(len(pool), size=self.meta_batch_size, replace=self.meta_batch_size > len(pool))
-        for task_id in task_ids:
-            self._switch_task(pool[task_id])
-            support, go_on = self._rollout(self.n_support, None, callback, None, self.pre_adaptation_episodes)
-            if not go_on:
-                return False
-            self.support_sets[int(task_id)] = support
-            actor_params, _ = self.adapted_parameters([support], self.inner_steps)[0]
-            self._switch_task(pool[task_id])
-            _, go_on = self._rollout(self.n_query, actor_params, callback, self._query_buffer(int(task_id)),
-                                     self.post_adaptation_episodes)
-            if not go_on:
-                return False
-        self.meta_train([int(t) for t in task_ids])
-        self.meta_iterations += 1
-        return True
-
-    def _record_adaptation_stats(self) -> None:
+    def _dump_meta_logs(self) -> None:
         for prefix, episodes in (("pre", self.pre_adaptation_episodes), ("post", self.post_adaptation_episodes)):
             if episodes:
                 for key, name in (("return", "return"), ("success", "success_rate"), ("collision", "collision_rate")):
                     self.logger.record(f"meta/{prefix}_adaptation_{name}", float(np.mean([e[key] for e in episodes])))
+        self.dump_logs()
 
     def learn(
         self: SelfMAMLSAC,
@@ -461,6 +482,9 @@ class MAMLSAC(AtomicSaveMixin, SAC):
     ) -> SelfMAMLSAC:
         """Warm-up (plain multi-task SAC for ``warmup_steps``), then meta-iterations until ``total_timesteps`` env
         steps.
+
+        SB3's off-policy loop (``OffPolicyAlgorithm.learn``) in which, after the warm-up, a meta-iteration takes the
+        place of ``collect_rollouts`` and ``sac_gradient_steps`` that of ``gradient_steps``.
 
         :param total_timesteps: env steps in total (support, query and warm-up interaction all count).
         :param callback: SB3 callback(s), called after every env step.
@@ -476,27 +500,23 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         )
         callback.on_training_start(locals(), globals())
         while self.num_timesteps < total_timesteps:
-            if self.num_timesteps < self.warmup_steps:
+            warm_up = self.num_timesteps < self.warmup_steps
+            if warm_up:
                 rollout = self.collect_rollouts(
-                    self.env, train_freq=self.train_freq, action_noise=self.action_noise, callback=callback,
-                    learning_starts=self.learning_starts, replay_buffer=self.replay_buffer, log_interval=log_interval,
+                    self.env, callback, self.train_freq, self.replay_buffer, self.action_noise, self.learning_starts,
+                    log_interval,
                 )
-                if not rollout.continue_training:
-                    break
-                if self.num_timesteps > self.learning_starts:
-                    gradient_steps = self.gradient_steps if self.gradient_steps >= 0 else rollout.episode_timesteps
-                    if gradient_steps > 0:
-                        self.train(batch_size=self.batch_size, gradient_steps=gradient_steps)
-                continue
-            steps_before = self.num_timesteps
-            if not self._meta_iteration(callback):
+                gradient_steps = self.gradient_steps if self.num_timesteps > self.learning_starts else 0
+            else:
+                rollout = self._meta_iteration(callback)
+                gradient_steps = self.sac_gradient_steps
+            if not rollout.continue_training:
                 break
-            sac_steps = self.num_timesteps - steps_before if self.sac_gradient_steps < 0 else self.sac_gradient_steps
-            if sac_steps > 0:
-                self.train(batch_size=self.batch_size, gradient_steps=sac_steps)
-            if log_interval is not None and self.meta_iterations % log_interval == 0:
-                self._record_adaptation_stats()
-                self.dump_logs()
+            gradient_steps = rollout.episode_timesteps if gradient_steps < 0 else gradient_steps
+            if gradient_steps > 0:
+                self.train(batch_size=self.batch_size, gradient_steps=gradient_steps)
+            if not warm_up and log_interval is not None and self.meta_iterations % log_interval == 0:
+                self._dump_meta_logs()
         self.env.env_method("set_task", None)
         callback.on_training_end()
         return self
