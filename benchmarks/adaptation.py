@@ -1,112 +1,184 @@
-"""Adaptation curves: success, return and collision rate against the number of adaptation steps K on held-out tasks.
+"""Adaptation study: trained models of several methods adapt to the same held-out tasks with the same support budget.
 
-Trains a MAML-SAC from ``hyperparams/maml_sac.yml`` (flags override single values), or loads one with ``--model``,
-then runs :func:`vafn_sb3.common.adaptation.evaluate_adaptation` on the first ``--n-tasks`` held-out test instructions
-of :class:`vafn_gym.InstructionBenchmark` (its default seed, the same tasks as every other script), for every K in
-``--k``. Meta-training draws its task pool from the same benchmark's training instructions. Writes ``adaptation.csv``
-(one row per task and K), ``adaptation.png``, ``adaptation.json`` and prints the per-K means. Never asserts a number.
+Every method is a set of saved models, one per training seed (``benchmarks/learning.py --save DIR`` writes
+``DIR/<algo>_seed<N>.zip``). For every model, every held-out test instruction of ``InstructionBenchmark`` (lengths
+``--min-length``..``--max-length``, its fixed seed: the same tasks for every method) and every K in ``--k``, the model
+collects ``--n-support`` transitions of the task with its stochastic policy (the same env seeds for every method and
+K), takes K adaptation steps (``model.adapt``: MAML-SAC's inner rounds, the others' own gradient steps on the support
+set: :func:`vafn_sb3.common.adaptation.evaluate_adaptation`) and runs the adapted policy deterministically. Methods
+that adapt inside the episode (a history of readings, ``--method ... '{"history": 4}'``) and methods evaluated
+zero-shot run at K = 0 only (``zero-shot`` as the fifth field). The scripted controller (the ceiling) and a uniform
+random policy (the floor) run on the same tasks.
+
+Writes to ``--out``: ``adaptation.csv`` (one row per method, seed, task and K), ``adaptation_summary.csv`` (per method
+and K: mean over seeds of the per-seed task means, with a 95 % Student-t half width over seeds), ``adaptation.png``
+and ``adaptation.json`` (the command, support budget in env steps and in episodes, wall times). Never asserts a number.
 
 Usage::
 
-    OMP_NUM_THREADS=1 nice -n 10 python benchmarks/adaptation.py --env VAFN/ThreeArmReachHidden-v1 --max-length 2 \\
-        --timesteps 300000 --warmup-steps 50000 --out results/maml_sac_hidden
+    python benchmarks/learning.py --algo maml_sac --env VAFN/ThreeArmReachHidden-v1 --save runs/hidden ...
+    python benchmarks/adaptation.py --env VAFN/ThreeArmReachHidden-v1 --max-length 4 --n-tasks 30 \\
+        --method maml_sac maml_sac 'runs/hidden/maml_sac_seed*.zip' \\
+        --method mtsac mtsac 'runs/hidden/mtsac_seed*.zip' \\
+        --method sac_history4 sac 'runs/hidden_h4/sac_seed*.zip' '{"history": 4}' zero-shot \\
+        --out results/adaptation/hidden
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import glob
 import json
+import re
 import sys
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
+import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from stable_baselines3.common.env_util import make_vec_env  # noqa: E402
+from tqdm import tqdm  # noqa: E402
 
-from vafn_gym import InstructionBenchmark  # noqa: E402
+import vafn_gym  # noqa: E402,F401  (registers the env IDs)
+from vafn_gym import InstructionBenchmark, ScriptedController  # noqa: E402
 from vafn_sb3.common.adaptation import evaluate_adaptation  # noqa: E402
-from vafn_sb3.maml_sac import MAMLSAC  # noqa: E402
-from zoo.hyperparams import load_hyperparams  # noqa: E402
+from zoo.plot import confidence_half_width  # noqa: E402
+from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 
-DEFAULT_K = [0, 1, 2, 3, 5, 10, 20, 50]
-METRICS = ("success_rate", "return_mean", "collision_rate")
-#: Flags that override the YAML value of the MAMLSAC keyword of the same name when given.
-OVERRIDES = ("n_support", "inner_steps", "outer_steps", "warmup_steps", "learning_rate", "gamma", "ent_coef")
+DEFAULT_K = [0, 1, 2, 5, 10, 20, 50]
+METRICS = ("success_rate", "collision_rate", "return_mean")
+#: The reference policies every study includes (K = 0, no training).
+REFERENCES = ("scripted", "random")
+
+
+@dataclass
+class Method:
+    """One method of the study: a label, the algorithm that loads its models, the models, and how it is evaluated."""
+
+    label: str
+    algo: str
+    paths: list[Path]
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+    zero_shot: bool = False
+
+    @classmethod
+    def parse(cls, fields: list[str]) -> Method:
+        """``LABEL ALGO GLOB [ENV_KWARGS_JSON] [zero-shot]`` from the command line (``ValueError`` if malformed)."""
+        if not 3 <= len(fields) <= 5:
+            raise ValueError(f"--method takes LABEL ALGO GLOB [ENV_KWARGS_JSON] [zero-shot], got {fields}")
+        label, algo, pattern, *rest = fields
+        zero_shot = "zero-shot" in rest
+        rest = [item for item in rest if item != "zero-shot"]
+        env_kwargs = json.loads(rest[0]) if rest else {}
+        if not isinstance(env_kwargs, dict):
+            raise ValueError(f"{label}: ENV_KWARGS must be a JSON object, got {rest[0]!r}")
+        paths = sorted(Path(p) for p in glob.glob(pattern))
+        if not paths:
+            raise ValueError(f"{label}: no model matches {pattern!r}")
+        return cls(label, algo, paths, env_kwargs, zero_shot)
+
+
+class RandomPolicy:
+    """Uniform random actions with SB3's ``predict`` signature (the floor of the study)."""
+
+    def __init__(self, action_space: gym.Space, seed: int) -> None:
+        self.action_space = action_space
+        self.action_space.seed(seed)
+
+    def predict(self, observation: np.ndarray, state: Any = None, episode_start: Any = None,
+                deterministic: bool = True) -> tuple[np.ndarray, None]:
+        """A uniform random action."""
+        return self.action_space.sample(), None
+
+
+def seed_of(path: Path) -> int:
+    """The training seed in a ``<algo>_seed<N>.zip`` file name (0 when the name carries none)."""
+    match = re.search(r"seed(\d+)", path.stem)
+    return int(match.group(1)) if match else 0
+
+
+def evaluate_method(method: Method, args: argparse.Namespace, tasks: list) -> list[dict]:
+    """Adaptation rows of every model of ``method`` (K = 0 only when it is zero-shot)."""
+    env_kwargs = {**args.env_kwargs, **method.env_kwargs}
+    k_values = [0] if method.zero_shot else args.k
+    rows = []
+    for path in method.paths:
+        model = require_algorithm(method.algo).load(path, device="cpu")
+        start = time.perf_counter()
+        for row in evaluate_adaptation(model, args.env, tasks, n_support=args.n_support, k_values=k_values,
+                                       n_eval_episodes=args.n_eval_episodes, seed=args.seed, env_kwargs=env_kwargs):
+            rows.append({"method": method.label, "seed": seed_of(path), **row})
+        print(f"  {method.label} seed {seed_of(path)}: {time.perf_counter() - start:.0f} s", flush=True)
+    return rows
+
+
+def evaluate_references(args: argparse.Namespace, tasks: list) -> list[dict]:
+    """K = 0 rows of the scripted controller and of the random policy on the same tasks."""
+    env = gym.make(args.env, **args.env_kwargs)
+    policies = {"scripted": ScriptedController.for_env(env), "random": RandomPolicy(env.action_space, args.seed)}
+    env.close()
+    rows = []
+    for label, policy in policies.items():
+        rows += [{"method": label, "seed": 0, **row}
+                 for row in evaluate_adaptation(policy, args.env, tasks, n_support=args.n_support, k_values=[0],
+                                                n_eval_episodes=args.n_eval_episodes, seed=args.seed,
+                                                env_kwargs=args.env_kwargs)]
+    return rows
 
 
 def summarise(rows: list[dict]) -> list[dict]:
-    """Mean (and standard error over tasks) of every metric, per K."""
+    """Per method and K: the mean over seeds of each seed's task mean, with a 95 % Student-t half width over seeds."""
     summary = []
-    for k in sorted({row["k"] for row in rows}):
-        subset = [row for row in rows if row["k"] == k]
-        entry = {"k": k, "n_tasks": len(subset)}
-        for metric in METRICS:
-            values = np.array([row[metric] for row in subset])
-            entry[metric] = float(values.mean())
-            entry[f"{metric}_sem"] = float(values.std(ddof=1) / np.sqrt(len(values))) if len(values) > 1 else 0.0
-        summary.append(entry)
+    for method in dict.fromkeys(row["method"] for row in rows):
+        subset = [row for row in rows if row["method"] == method]
+        for k in sorted({row["k"] for row in subset}):
+            seeds = sorted({row["seed"] for row in subset})
+            entry: dict[str, Any] = {"method": method, "k": k, "n_seeds": len(seeds),
+                                     "n_tasks": sum(1 for row in subset if row["k"] == k and row["seed"] == seeds[0])}
+            for metric in METRICS:
+                per_seed = np.array([[np.mean([row[metric] for row in subset if row["k"] == k and row["seed"] == s])]
+                                     for s in seeds])
+                entry[metric] = float(per_seed.mean())
+                entry[f"{metric}_ci95"] = float(confidence_half_width(per_seed)[0])
+            summary.append(entry)
     return summary
 
 
-def plot(summary: list[dict], path: Path, title: str) -> None:
-    """Three panels (success, return, collisions) against K, with ±1 standard error bands over tasks."""
+def plot(summary: list[dict], path: Path, title: str, k_max: int) -> None:
+    """Success, collision rate and return against K, one line per method (K = 0-only methods as flat lines)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    ks = np.array([entry["k"] for entry in summary])
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
+    for index, method in enumerate(dict.fromkeys(entry["method"] for entry in summary)):
+        entries = [entry for entry in summary if entry["method"] == method]
+        ks = np.array([entry["k"] for entry in entries], dtype=float)
+        style = {"color": f"C{index}", "label": method}
+        if len(entries) == 1:  # evaluated at K = 0 only: draw it across the axis
+            ks, style["ls"], entries = np.array([0.0, k_max]), ("--" if method in REFERENCES else ":"), entries * 2
+        for ax, metric in zip(axes, METRICS, strict=True):
+            mean = np.array([entry[metric] for entry in entries])
+            half = np.array([entry[f"{metric}_ci95"] for entry in entries])
+            ax.plot(ks, mean, marker="o" if "ls" not in style else None, **style)
+            ax.fill_between(ks, mean - half, mean + half, color=style["color"], alpha=0.15)
     for ax, metric in zip(axes, METRICS, strict=True):
-        mean = np.array([entry[metric] for entry in summary])
-        sem = np.array([entry[f"{metric}_sem"] for entry in summary])
-        ax.plot(ks, mean, marker="o")
-        ax.fill_between(ks, mean - sem, mean + sem, alpha=0.25)
         ax.set_xscale("symlog", linthresh=1)
         ax.set_xlabel("adaptation steps K")
-        ax.set_title(metric)
-    axes[0].axhline(0.95, ls="--", c="grey", lw=0.8)
+        ax.set_title(metric.replace("_", " "))
+    axes[0].axhline(0.95, ls="-", c="grey", lw=0.5)
+    axes[0].legend(fontsize=7)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
-
-
-def maml_kwargs(args: argparse.Namespace) -> tuple[dict[str, Any], int, str]:
-    """``(MAMLSAC kwargs, timesteps, policy)``: the YAML's entry for ``args.env``, updated by the flags given."""
-    kwargs, yaml_steps, policy = load_hyperparams("maml_sac", args.env)
-    for name in OVERRIDES:
-        value = getattr(args, name)
-        if value is not None:
-            kwargs[name] = value
-    if isinstance(kwargs.get("ent_coef"), str) and not kwargs["ent_coef"].startswith("auto"):
-        kwargs["ent_coef"] = float(kwargs["ent_coef"])
-    if args.second_order:
-        kwargs["second_order"] = True
-    if args.net_arch is not None:
-        kwargs["policy_kwargs"] = {**kwargs.get("policy_kwargs", {}), "net_arch": args.net_arch}
-    return kwargs, args.timesteps or yaml_steps, args.policy or policy
-
-
-def train(args: argparse.Namespace, benchmark: InstructionBenchmark, env_kwargs: dict[str, Any]) -> MAMLSAC:
-    """Train (or, with ``--resume``, continue) a MAML-SAC on the benchmark's training instructions; save it."""
-    kwargs, timesteps, policy = maml_kwargs(args)
-    venv = make_vec_env(args.env, n_envs=args.n_envs, env_kwargs=env_kwargs, seed=args.seed)
-    tensorboard_log = str(args.out / "tb")
-    if args.resume is not None:
-        model = MAMLSAC.load(args.resume, env=venv, tensorboard_log=tensorboard_log)
-    else:
-        kwargs["train_tasks"] = benchmark.train_tasks
-        model = MAMLSAC(policy, venv, tensorboard_log=tensorboard_log, seed=args.seed, **kwargs)
-    model.learn(timesteps, log_interval=5, reset_num_timesteps=args.resume is None)
-    model.save(args.out / "model.zip")
-    return model
 
 
 def write_csv(rows: list[dict], path: Path) -> None:
@@ -117,74 +189,74 @@ def write_csv(rows: list[dict], path: Path) -> None:
         writer.writerows(rows)
 
 
+def support_episodes(args: argparse.Namespace, tasks: list) -> float:
+    """Mean number of episodes (started) in a support set of ``--n-support`` steps, with the task's step budget."""
+    env = gym.make(args.env, **args.env_kwargs)
+    base = env.unwrapped
+    budgets = []
+    for task in tasks:
+        base.set_task(task)
+        env.reset(seed=args.seed)
+        budgets.append(base.max_episode_steps())
+    env.close()
+    return float(np.mean([np.ceil(args.n_support / budget) for budget in budgets]))
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    """Command-line flags; training flags left unset take ``hyperparams/maml_sac.yml``'s value."""
+    """Command-line flags."""
     parser = argparse.ArgumentParser(
         description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
     parser.add_argument("--env", default="VAFN/ThreeArmReachHidden-v1", help="env ID")
-    parser.add_argument("--env-kwargs", type=json.loads, default={}, help='JSON, e.g. \'{"n_arms": 4}\'')
-    parser.add_argument("--max-length", type=int, default=2, help="longest instruction (training and test)")
-    parser.add_argument("--model", type=Path, help="evaluate this saved MAMLSAC instead of training one")
-    parser.add_argument("--resume", type=Path, help="continue training this saved MAMLSAC for --timesteps more steps")
-    parser.add_argument("--timesteps", type=int, help="training env steps (warm-up included)")
-    parser.add_argument("--warmup-steps", type=int, help="plain multi-task SAC steps first")
-    parser.add_argument("--policy", help="policy alias (SharedAgentPolicy or MlpPolicy)")
-    parser.add_argument("--net-arch", type=int, nargs="+", help="hidden layer sizes (default: the YAML's)")
-    parser.add_argument("--n-envs", type=int, default=1, help="training envs")
-    parser.add_argument("--n-support", type=int, help="support transitions (meta-training and evaluation)")
-    parser.add_argument("--inner-steps", type=int, help="K during meta-training")
-    parser.add_argument("--outer-steps", type=int, help="meta-gradient steps per meta-iteration")
-    parser.add_argument("--second-order", action="store_true", help="second-order MAML")
-    parser.add_argument("--learning-rate", type=float, help="outer (and warm-up) Adam learning rate")
-    parser.add_argument("--gamma", type=float, help="discount factor")
-    parser.add_argument("--ent-coef", help="SAC's ent_coef: 'auto', 'auto_0.1' or a number")
-    parser.add_argument("--n-tasks", type=int, default=20, help="held-out test instructions")
+    parser.add_argument("--env-kwargs", type=json.loads, default={}, help="JSON kwargs of every method's env")
+    parser.add_argument("--method", nargs="+", action="append", default=[], metavar="FIELD",
+                        help="LABEL ALGO GLOB [ENV_KWARGS_JSON] [zero-shot]; repeat for every method")
+    parser.add_argument("--min-length", type=int, default=1, help="shortest test instruction")
+    parser.add_argument("--max-length", type=int, default=4, help="longest test instruction")
+    parser.add_argument("--n-tasks", type=int, default=30, help="held-out test instructions")
     parser.add_argument("--k", type=int, nargs="+", default=DEFAULT_K, help="adaptation steps to evaluate")
-    parser.add_argument("--n-eval-episodes", type=int, default=3, help="episodes per task and K")
-    parser.add_argument("--seed", type=int, default=0, help="training, support and evaluation-episode seed")
-    parser.add_argument("--out", type=Path, default=Path("results/maml_sac_adaptation"), help="output folder")
+    parser.add_argument("--n-support", type=int, default=400, help="support transitions per adaptation")
+    parser.add_argument("--n-eval-episodes", type=int, default=1,
+                        help="deterministic episodes per task and K (the env is deterministic given the task)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the support rollouts and evaluation episodes")
+    parser.add_argument("--out", type=Path, default=Path("results/adaptation"), help="output folder")
     return parser.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Train or load a MAML-SAC, evaluate its adaptation curve on held-out test tasks, write CSV/PNG/JSON."""
+    """Evaluate every method's models and the references on the same held-out tasks; write CSV, summary, plot."""
     args = parse_args(argv)
     torch.set_num_threads(1)
+    register_algorithms()
+    methods = [Method.parse(fields) for fields in args.method]
     args.out.mkdir(parents=True, exist_ok=True)
-    env_kwargs = {**args.env_kwargs, "max_length": args.max_length}
-    benchmark = InstructionBenchmark(
-        args.env, 1, args.max_length, n_test=args.n_tasks, env_kwargs=args.env_kwargs, train_max_length=args.max_length
-    )
+    benchmark = InstructionBenchmark(args.env, args.min_length, args.max_length, n_test=args.n_tasks,
+                                     env_kwargs=args.env_kwargs)
+    tasks = benchmark.test_tasks
     start = time.perf_counter()
-    if args.model is not None:
-        model, train_seconds = MAMLSAC.load(args.model), None
-    else:
-        model = train(args, benchmark, env_kwargs)
-        train_seconds = time.perf_counter() - start
-    n_support = args.n_support or model.n_support
-    start = time.perf_counter()
-    rows = evaluate_adaptation(
-        model, args.env, benchmark.test_tasks, n_support=n_support, k_values=args.k,
-        n_eval_episodes=args.n_eval_episodes, seed=args.seed, env_kwargs=env_kwargs,
-    )
-    eval_seconds = time.perf_counter() - start
-    write_csv(rows, args.out / "adaptation.csv")
+    rows = evaluate_references(args, tasks)
+    for method in tqdm(methods, desc="methods"):
+        rows += evaluate_method(method, args, tasks)
     summary = summarise(rows)
-    meta = {
-        "env": args.env, "env_kwargs": args.env_kwargs, "max_length": args.max_length,
-        "test_seed": benchmark.seed, "timesteps": model.num_timesteps, "meta_iterations": model.meta_iterations,
-        "inner_lrs": model.inner_lrs, "train_seconds": train_seconds, "eval_seconds": eval_seconds,
-        "n_support": n_support, "n_tasks": args.n_tasks, "command": " ".join(sys.argv), "summary": summary,
-    }
+    write_csv(rows, args.out / "adaptation.csv")
+    write_csv(summary, args.out / "adaptation_summary.csv")
+    episodes = support_episodes(args, tasks)
+    title = (f"{args.env}: {len(tasks)} held-out test instructions of lengths {args.min_length}-{args.max_length}; "
+             f"support {args.n_support} env steps (~{episodes:.1f} episodes) per adaptation; "
+             f"mean over seeds ± 95 % CI")
+    plot(summary, args.out / "adaptation.png", title, max(args.k))
+    meta = {"command": " ".join(sys.argv), "env": args.env, "env_kwargs": args.env_kwargs,
+            "test_lengths": [args.min_length, args.max_length], "n_tasks": len(tasks), "benchmark_seed": benchmark.seed,
+            "n_support_steps": args.n_support, "support_episodes_mean": episodes, "k": args.k,
+            "methods": [{"label": m.label, "algo": m.algo, "models": [str(p) for p in m.paths],
+                         "env_kwargs": m.env_kwargs, "zero_shot": m.zero_shot} for m in methods],
+            "eval_wall_s": round(time.perf_counter() - start, 1), "summary": summary}
     (args.out / "adaptation.json").write_text(json.dumps(meta, indent=2))
-    title = (f"MAML-SAC on {args.env} (len<={args.max_length}), {model.num_timesteps} steps, "
-             f"{args.n_tasks} test tasks, support {n_support}")
-    plot(summary, args.out / "adaptation.png", title)
     print(title)
-    print(f"{'K':>3} " + " ".join(f"{m:>22}" for m in METRICS))
+    print(f"{'method':>16} {'K':>3} " + " ".join(f"{m:>22}" for m in METRICS))
     for entry in summary:
-        print(f"{entry['k']:>3} " + " ".join(f"{entry[m]:>14.3f} ± {entry[m + '_sem']:.3f}" for m in METRICS))
+        print(f"{entry['method']:>16} {entry['k']:>3} "
+              + " ".join(f"{entry[m]:>14.3f} ± {entry[m + '_ci95']:.3f}" for m in METRICS))
 
 
 if __name__ == "__main__":

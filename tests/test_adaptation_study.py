@@ -1,0 +1,79 @@
+"""benchmarks/adaptation.py: several methods' saved models adapt to the same held-out tasks; references included."""
+
+from __future__ import annotations
+
+import csv
+import json
+import runpy
+import sys
+from pathlib import Path
+
+import pytest
+
+from vafn_sb3 import MTSAC, SAC
+
+ROOT = Path(__file__).resolve().parents[1]
+HIDDEN = "VAFN/ThreeArmReachHidden-v1"
+
+
+@pytest.fixture(scope="module")
+def study():
+    """The script's namespace (imported once, not run)."""
+    return runpy.run_path(str(ROOT / "benchmarks" / "adaptation.py"), run_name="adaptation_study")
+
+
+def tiny(algo: type, env_kwargs: dict, seed: int, path: Path) -> Path:
+    import gymnasium as gym
+
+    env = gym.make(HIDDEN, max_length=1, **env_kwargs)
+    model = algo("SharedAgentPolicy", env, learning_starts=10, batch_size=8, policy_kwargs={"net_arch": [8]}, seed=seed)
+    model.learn(20)
+    model.save(path)
+    env.close()
+    return path
+
+
+def test_method_parse_fails_clearly(study, tmp_path):
+    method = study["Method"]
+    with pytest.raises(ValueError, match="LABEL ALGO GLOB"):
+        method.parse(["only", "two"])
+    with pytest.raises(ValueError, match="no model matches"):
+        method.parse(["x", "sac", str(tmp_path / "none_*.zip")])
+    (tmp_path / "sac_seed3.zip").write_bytes(b"")
+    with pytest.raises(ValueError, match="JSON object"):
+        method.parse(["x", "sac", str(tmp_path / "*.zip"), "[1]"])
+    parsed = method.parse(["x", "sac", str(tmp_path / "*.zip"), '{"history": 2}', "zero-shot"])
+    assert parsed.env_kwargs == {"history": 2} and parsed.zero_shot and study["seed_of"](parsed.paths[0]) == 3
+
+
+def test_summary_is_a_mean_over_seeds_of_task_means_with_a_t_interval(study):
+    rows = [{"method": "m", "seed": s, "k": 0, "success_rate": v, "collision_rate": 0.0, "return_mean": 1.0}
+            for s, values in ((0, (1.0, 0.0)), (1, (1.0, 1.0))) for v in values]
+    (entry,) = study["summarise"](rows)
+    assert entry["success_rate"] == pytest.approx(0.75) and entry["n_seeds"] == 2 and entry["n_tasks"] == 2
+    assert entry["success_rate_ci95"] == pytest.approx(12.706 * 0.25, rel=1e-3)  # t(0.975, 1) * std / sqrt(2)
+    assert entry["collision_rate_ci95"] == 0.0
+
+
+def test_study_end_to_end(study, tmp_path, monkeypatch):
+    models = tmp_path / "models"
+    models.mkdir()
+    for seed in (0, 1):
+        tiny(MTSAC, {}, seed, models / f"mtsac_seed{seed}.zip")
+    tiny(SAC, {"history": 2}, 0, models / "sac_seed0.zip")
+    out = tmp_path / "out"
+    argv = ["adaptation.py", "--max-length", "1", "--n-tasks", "2", "--k", "0", "1", "--n-support", "12",
+            "--method", "mtsac", "mtsac", str(models / "mtsac_seed*.zip"),
+            "--method", "history", "sac", str(models / "sac_seed*.zip"), '{"history": 2}', "zero-shot",
+            "--out", str(out)]
+    monkeypatch.setattr(sys, "argv", argv)
+    study["main"](argv[1:])
+    with (out / "adaptation.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    counts = {m: sum(1 for r in rows if r["method"] == m) for m in ("scripted", "random", "mtsac", "history")}
+    assert counts == {"scripted": 2, "random": 2, "mtsac": 2 * 2 * 2, "history": 2}
+    assert all(float(r["success_rate"]) == 1.0 for r in rows if r["method"] == "scripted")
+    meta = json.loads((out / "adaptation.json").read_text())
+    assert meta["n_support_steps"] == 12 and meta["support_episodes_mean"] == 1.0
+    assert {(e["method"], e["k"]) for e in meta["summary"]} >= {("mtsac", 0), ("mtsac", 1), ("history", 0)}
+    assert (out / "adaptation.png").stat().st_size > 0
