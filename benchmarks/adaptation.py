@@ -33,7 +33,9 @@ import json
 import re
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
+from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -103,19 +105,29 @@ def seed_of(path: Path) -> int:
     return int(match.group(1)) if match else 0
 
 
-def evaluate_method(method: Method, args: argparse.Namespace, tasks: list) -> list[dict]:
-    """Adaptation rows of every model of ``method`` (K = 0 only when it is zero-shot)."""
-    env_kwargs = {**args.env_kwargs, **method.env_kwargs}
-    k_values = [0] if method.zero_shot else args.k
-    rows = []
-    for path in method.paths:
-        model = require_algorithm(method.algo).load(path, device="cpu")
-        start = time.perf_counter()
-        for row in evaluate_adaptation(model, args.env, tasks, n_support=args.n_support, k_values=k_values,
-                                       n_eval_episodes=args.n_eval_episodes, seed=args.seed, env_kwargs=env_kwargs):
-            rows.append({"method": method.label, "seed": seed_of(path), **row})
-        print(f"  {method.label} seed {seed_of(path)}: {time.perf_counter() - start:.0f} s", flush=True)
-    return rows
+def evaluate_model(method: Method, path: Path, args: argparse.Namespace, tasks: list) -> list[dict]:
+    """Adaptation rows of one saved model of ``method`` (K = 0 only when the method is zero-shot)."""
+    torch.set_num_threads(1)
+    register_algorithms()
+    model = require_algorithm(method.algo).load(path, device="cpu")
+    rows = evaluate_adaptation(model, args.env, tasks, n_support=args.n_support,
+                               k_values=[0] if method.zero_shot else args.k, n_eval_episodes=args.n_eval_episodes,
+                               seed=args.seed, env_kwargs={**args.env_kwargs, **method.env_kwargs})
+    return [{"method": method.label, "seed": seed_of(path), **row} for row in rows]
+
+
+def evaluate_methods(methods: list[Method], args: argparse.Namespace, tasks: list) -> list[dict]:
+    """Rows of every model of every method, ``--workers`` models at a time (each in a single-threaded child)."""
+    jobs = [(method, path) for method in methods for path in method.paths]
+    if args.workers == 1:
+        return [row for method, path in tqdm(jobs, desc="models") for row in evaluate_model(method, path, args, tasks)]
+    results: dict[int, list[dict]] = {}
+    with ProcessPoolExecutor(max_workers=args.workers, mp_context=get_context("spawn")) as pool:
+        futures = {pool.submit(evaluate_model, method, path, args, tasks): index
+                   for index, (method, path) in enumerate(jobs)}
+        for future in tqdm(as_completed(futures), total=len(futures), desc="models"):
+            results[futures[future]] = future.result()
+    return [row for index in range(len(jobs)) for row in results[index]]
 
 
 def evaluate_references(args: argparse.Namespace, tasks: list) -> list[dict]:
@@ -219,6 +231,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--n-eval-episodes", type=int, default=1,
                         help="deterministic episodes per task and K (the env is deterministic given the task)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the support rollouts and evaluation episodes")
+    parser.add_argument("--workers", type=int, default=1, help="models evaluated in parallel (one thread each)")
     parser.add_argument("--out", type=Path, default=Path("results/adaptation"), help="output folder")
     return parser.parse_args(argv)
 
@@ -227,16 +240,13 @@ def main(argv: list[str] | None = None) -> None:
     """Evaluate every method's models and the references on the same held-out tasks; write CSV, summary, plot."""
     args = parse_args(argv)
     torch.set_num_threads(1)
-    register_algorithms()
     methods = [Method.parse(fields) for fields in args.method]
     args.out.mkdir(parents=True, exist_ok=True)
     benchmark = InstructionBenchmark(args.env, args.min_length, args.max_length, n_test=args.n_tasks,
                                      env_kwargs=args.env_kwargs)
     tasks = benchmark.test_tasks
     start = time.perf_counter()
-    rows = evaluate_references(args, tasks)
-    for method in tqdm(methods, desc="methods"):
-        rows += evaluate_method(method, args, tasks)
+    rows = evaluate_references(args, tasks) + evaluate_methods(methods, args, tasks)
     summary = summarise(rows)
     write_csv(rows, args.out / "adaptation.csv")
     write_csv(summary, args.out / "adaptation_summary.csv")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import runpy
+import subprocess
 import sys
 from pathlib import Path
 
@@ -55,7 +56,8 @@ def test_summary_is_a_mean_over_seeds_of_task_means_with_a_t_interval(study):
     assert entry["collision_rate_ci95"] == 0.0
 
 
-def test_study_end_to_end(study, tmp_path, monkeypatch):
+@pytest.mark.parametrize("workers", [1, 2])
+def test_study_end_to_end(study, tmp_path, monkeypatch, workers):
     models = tmp_path / "models"
     models.mkdir()
     for seed in (0, 1):
@@ -65,9 +67,13 @@ def test_study_end_to_end(study, tmp_path, monkeypatch):
     argv = ["adaptation.py", "--max-length", "1", "--n-tasks", "2", "--k", "0", "1", "--n-support", "12",
             "--method", "mtsac", "mtsac", str(models / "mtsac_seed*.zip"),
             "--method", "history", "sac", str(models / "sac_seed*.zip"), '{"history": 2}', "zero-shot",
-            "--out", str(out)]
-    monkeypatch.setattr(sys, "argv", argv)
-    study["main"](argv[1:])
+            "--workers", str(workers), "--out", str(out)]
+    if workers == 1:
+        monkeypatch.setattr(sys, "argv", argv)
+        study["main"](argv[1:])
+    else:  # child processes need the script as a real __main__, as a user runs it
+        subprocess.run([sys.executable, str(ROOT / "benchmarks" / "adaptation.py"), *argv[1:]], check=True,
+                       capture_output=True)
     with (out / "adaptation.csv").open() as handle:
         rows = list(csv.DictReader(handle))
     counts = {m: sum(1 for r in rows if r["method"] == m) for m in ("scripted", "random", "mtsac", "history")}
