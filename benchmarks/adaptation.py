@@ -144,6 +144,14 @@ def evaluate_references(args: argparse.Namespace, tasks: list) -> list[dict]:
     return rows
 
 
+def read_rows(path: Path) -> list[dict]:
+    """Rows of an earlier ``adaptation.csv`` (numbers parsed)."""
+    integers = ("seed", "task_index", "k", "n_support")
+    with path.open(newline="") as handle:
+        return [{key: (value if key in ("method", "task") else int(value) if key in integers else float(value))
+                 for key, value in row.items()} for row in csv.DictReader(handle)]
+
+
 def summarise(rows: list[dict]) -> list[dict]:
     """Per method and K: the mean over seeds of each seed's task mean, with a 95 % Student-t half width over seeds."""
     summary = []
@@ -231,6 +239,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--n-eval-episodes", type=int, default=1,
                         help="deterministic episodes per task and K (the env is deterministic given the task)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the support rollouts and evaluation episodes")
+    parser.add_argument("--append", action="store_true",
+                        help="keep the other methods' rows of an earlier run in --out (same tasks and flags)")
     parser.add_argument("--workers", type=int, default=1, help="models evaluated in parallel (one thread each)")
     parser.add_argument("--out", type=Path, default=Path("results/adaptation"), help="output folder")
     return parser.parse_args(argv)
@@ -246,7 +256,16 @@ def main(argv: list[str] | None = None) -> None:
                                      env_kwargs=args.env_kwargs)
     tasks = benchmark.test_tasks
     start = time.perf_counter()
-    rows = evaluate_references(args, tasks) + evaluate_methods(methods, args, tasks)
+    kept, method_records = [], []
+    if args.append and (args.out / "adaptation.csv").is_file():
+        replaced = {method.label for method in methods} | set(REFERENCES)
+        kept = [row for row in read_rows(args.out / "adaptation.csv") if row["method"] not in replaced]
+        earlier = {(row["task"], row["n_support"]) for row in kept}
+        if not earlier <= {(task.to_code(), args.n_support) for task in tasks}:
+            raise SystemExit(f"--append: {args.out / 'adaptation.csv'} has other tasks or another --n-support")
+        previous = json.loads((args.out / "adaptation.json").read_text())["methods"]
+        method_records = [m for m in previous if m["label"] not in replaced]
+    rows = evaluate_references(args, tasks) + kept + evaluate_methods(methods, args, tasks)
     summary = summarise(rows)
     write_csv(rows, args.out / "adaptation.csv")
     write_csv(summary, args.out / "adaptation_summary.csv")
@@ -258,8 +277,8 @@ def main(argv: list[str] | None = None) -> None:
     meta = {"command": " ".join(sys.argv), "env": args.env, "env_kwargs": args.env_kwargs,
             "test_lengths": [args.min_length, args.max_length], "n_tasks": len(tasks), "benchmark_seed": benchmark.seed,
             "n_support_steps": args.n_support, "support_episodes_mean": episodes, "k": args.k,
-            "methods": [{"label": m.label, "algo": m.algo, "models": [str(p) for p in m.paths],
-                         "env_kwargs": m.env_kwargs, "zero_shot": m.zero_shot} for m in methods],
+            "methods": method_records + [{"label": m.label, "algo": m.algo, "models": [str(p) for p in m.paths],
+                                          "env_kwargs": m.env_kwargs, "zero_shot": m.zero_shot} for m in methods],
             "eval_wall_s": round(time.perf_counter() - start, 1), "summary": summary}
     (args.out / "adaptation.json").write_text(json.dumps(meta, indent=2))
     print(title)

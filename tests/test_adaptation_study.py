@@ -83,3 +83,19 @@ def test_study_end_to_end(study, tmp_path, monkeypatch, workers):
     assert meta["n_support_steps"] == 12 and meta["support_episodes_mean"] == 1.0
     assert {(e["method"], e["k"]) for e in meta["summary"]} >= {("mtsac", 0), ("mtsac", 1), ("history", 0)}
     assert (out / "adaptation.png").stat().st_size > 0
+
+
+def test_append_keeps_other_methods_and_refuses_other_tasks(study, tmp_path, monkeypatch):
+    models = tmp_path / "models"
+    models.mkdir()
+    tiny(MTSAC, {}, 0, models / "mtsac_seed0.zip")
+    out = tmp_path / "out"
+    common = ["--max-length", "1", "--n-tasks", "1", "--k", "0", "--n-support", "8", "--out", str(out)]
+    study["main"]([*common, "--method", "a", "mtsac", str(models / "*.zip")])
+    study["main"]([*common, "--method", "b", "mtsac", str(models / "*.zip"), "--append"])
+    meta = json.loads((out / "adaptation.json").read_text())
+    assert [m["label"] for m in meta["methods"]] == ["a", "b"]
+    assert {e["method"] for e in meta["summary"]} == {"scripted", "random", "a", "b"}
+    with pytest.raises(SystemExit, match="other tasks"):
+        study["main"]([*common[:-2], "--n-support", "9", "--out", str(out), "--append",
+                       "--method", "c", "mtsac", str(models / "*.zip")])
