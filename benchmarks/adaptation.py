@@ -188,7 +188,10 @@ def plot(summary: list[dict], path: Path, title: str, k_max: int) -> None:
             mean = np.array([entry[metric] for entry in entries])
             half = np.array([entry[f"{metric}_ci95"] for entry in entries])
             ax.plot(ks, mean, marker="o" if "ls" not in style else None, **style)
-            ax.fill_between(ks, mean - half, mean + half, color=style["color"], alpha=0.15)
+            low, high = mean - half, mean + half
+            if metric.endswith("_rate"):
+                low, high = np.clip(low, 0, 1), np.clip(high, 0, 1)
+            ax.fill_between(ks, low, high, color=style["color"], alpha=0.15)
     for ax, metric in zip(axes, METRICS, strict=True):
         ax.set_xscale("symlog", linthresh=1)
         ax.set_xlabel("adaptation steps K")
