@@ -48,7 +48,7 @@ import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import vafn_gym  # noqa: E402,F401  (registers the env IDs)
-from vafn_gym import InstructionBenchmark, ScriptedController  # noqa: E402
+from vafn_gym import InstructionBenchmark, RandomPolicy, ScriptedController  # noqa: E402
 from vafn_sb3.common.adaptation import evaluate_adaptation  # noqa: E402
 from zoo.plot import confidence_half_width  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
@@ -84,19 +84,6 @@ class Method:
         if not paths:
             raise ValueError(f"{label}: no model matches {pattern!r}")
         return cls(label, algo, paths, env_kwargs, zero_shot)
-
-
-class RandomPolicy:
-    """Uniform random actions with SB3's ``predict`` signature (the floor of the study)."""
-
-    def __init__(self, action_space: gym.Space, seed: int) -> None:
-        self.action_space = action_space
-        self.action_space.seed(seed)
-
-    def predict(self, observation: np.ndarray, state: Any = None, episode_start: Any = None,
-                deterministic: bool = True) -> tuple[np.ndarray, None]:
-        """A uniform random action."""
-        return self.action_space.sample(), None
 
 
 def seed_of(path: Path) -> int:

@@ -136,3 +136,20 @@ class ScriptedController:
         if obs.ndim == 2:
             return np.stack([self.act(o) for o in obs]), None
         return self.act(obs), None
+
+
+class RandomPolicy:
+    """Uniformly random actions with SB3's ``predict`` signature (a lower reference).
+
+    :param action_space: the env's action space.
+    :param seed: seed of the action stream.
+    """
+
+    def __init__(self, action_space: gym.spaces.Box, seed: int) -> None:
+        self.action_space = action_space
+        self.action_space.seed(seed)
+
+    def predict(self, observation: np.ndarray, state: Any = None, episode_start: Any = None,
+                deterministic: bool = True) -> tuple[np.ndarray, None]:
+        """A random action (``observation`` is ignored)."""
+        return self.action_space.sample(), None

@@ -19,7 +19,6 @@ import argparse
 import sys
 import warnings
 from pathlib import Path
-from typing import Any
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 if str(REPO_ROOT) not in sys.path:  # `python zoo/online_control.py` puts zoo/ first on the path, not the repo root
@@ -30,29 +29,12 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import vafn_gym  # noqa: E402,F401  (registers the env IDs)
-from vafn_gym import TARGET_MODES, ScriptedController  # noqa: E402
+from vafn_gym import TARGET_MODES, RandomPolicy, ScriptedController  # noqa: E402
 from vafn_gym.queue import PoissonArrivals, ScheduledArrivals  # noqa: E402
 from vafn_sb3 import load_pretrained  # noqa: E402
 from vafn_sb3.loading import family_mismatch, load_model, training_env  # noqa: E402
 from vafn_sb3.online import OnlineController  # noqa: E402
 from zoo.plot import plot_online_distances  # noqa: E402
-
-
-class RandomPolicy:
-    """Uniformly random actions with SB3's ``predict`` signature (a lower reference).
-
-    :param action_space: the env's action space.
-    :param seed: seed of the action stream.
-    """
-
-    def __init__(self, action_space: gym.spaces.Box, seed: int) -> None:
-        self.action_space = action_space
-        self.action_space.seed(seed)
-
-    def predict(self, observation: np.ndarray, state: Any = None, episode_start: Any = None,
-                deterministic: bool = True) -> tuple[np.ndarray, None]:
-        """A random action (``observation`` is ignored)."""
-        return self.action_space.sample(), None
 
 
 def parse_schedule(text: str) -> dict[int, list[str]]:
