@@ -36,7 +36,7 @@ def resample(waveform: np.ndarray, rate_in: int, rate_out: int) -> np.ndarray:
 
     if rate_in == rate_out:
         return np.asarray(waveform, np.float32)
-    return soxr.resample(np.asarray(waveform, np.float32), rate_in, rate_out).astype(np.float32)
+    return soxr.resample(np.asarray(waveform, np.float32), rate_in, rate_out).astype(np.float32, copy=False)
 
 
 def speed(waveform: np.ndarray, factor: float) -> np.ndarray:

@@ -85,11 +85,23 @@ def log_mel_batch(
 def log_mel(waveform: np.ndarray, sample_rate: int) -> torch.Tensor:
     """Normalised log-mel features (1, N_MELS, T) of one mono clip.
 
+    The same numbers as :func:`log_mel_batch` on a batch of this one clip (bit for bit: a clip alone has no padded
+    frames, so the batch's frame mask is all ones and is skipped here, as are its allocations).
+
     :param waveform: float32 samples.
     :param sample_rate: sample rate in Hz.
     """
     import torch
 
     tensor = torch.from_numpy(np.ascontiguousarray(waveform, dtype=np.float32))[None]
-    features, _ = log_mel_batch(tensor, torch.tensor([tensor.shape[1]]), sample_rate)
-    return features
+    n_fft, win, hop = frame_params(sample_rate)
+    mel, window = mel_filterbank(sample_rate)
+    spec = torch.stft(tensor, n_fft=n_fft, hop_length=hop, win_length=win, window=window, center=True,
+                      pad_mode="constant", return_complex=True)
+    power = spec.real.square() + spec.imag.square()
+    features = torch.matmul(mel, power).add_(LOG_EPS).log_()  # (1, N_MELS, T)
+    count = torch.full((1, 1, 1), features.shape[-1], dtype=features.dtype)  # centred frames: every one is valid
+    mean = features.sum(-1, keepdim=True) / count
+    centered = features - mean
+    var = (centered ** 2).sum(-1, keepdim=True) / count
+    return centered.div_(torch.sqrt(var + 1e-5))

@@ -77,6 +77,11 @@ class InstructionGenerator:
             name: tuple(value) for name, value in self.metadata.get("confidence_calibration", {}).items()
         }
         self._torch = torch
+        from vafn_media.model import AudioInference
+
+        #: The audio path as plain function calls on the model's weights (None when the model has layers it does not
+        #: know, e.g. unfolded BatchNorm: then ``model.encode``); see :class:`~vafn_media.model.AudioInference`.
+        self._audio_inference = AudioInference.build(self.model)
 
     @classmethod
     def load(cls, path: str | os.PathLike | None = None, warm: bool = True) -> InstructionGenerator:
@@ -139,6 +144,8 @@ class InstructionGenerator:
         sample_rate = SAMPLE_RATE
         with torch.inference_mode():
             features = log_mel(waveform, sample_rate)
+            if self._audio_inference is not None:
+                return self._audio_inference(features)[0]
             phi, _ = self.model.encode("audio", features, torch.tensor([features.shape[-1]]))
         return phi[0]
 

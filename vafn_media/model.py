@@ -12,6 +12,7 @@ from dataclasses import asdict, dataclass
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from vafn_media.constants import ENCODER_STRIDE, IMAGE_HEIGHT, LATENT_DIM, N_MELS, VOCAB_SIZE
 
@@ -176,3 +177,96 @@ def fold_batchnorm(model: InstructionModel) -> InstructionModel:
                     _fold(children[i], children[i + 1])
                     module[i + 1] = nn.Identity()
     return folded
+
+
+#: PyTorch's native CPU convolution kernels (im2col + GEMM; the dilated one), called directly where available.
+#: ``F.conv1d`` picks oneDNN instead for a batch of one whose input has more than 20,480 elements (long clips), and
+#: oneDNN builds a new primitive (1-2.5 ms) for every input length it has not seen: on fresh clips that cost more
+#: than the convolution itself.
+_NATIVE_CONV2D = getattr(torch._C._nn, "thnn_conv2d", None)
+_NATIVE_DILATED2D = getattr(torch._C._nn, "slow_conv_dilated2d", None)
+
+
+class AudioInference:
+    """Φ of one clip's features through a BatchNorm-folded model's audio path, without module calls or oneDNN.
+
+    The same layers as ``model.encode("audio", ...)`` on the model's own weight tensors, called as functions (no
+    ``nn.Module`` dispatch, no latent-length bookkeeping, ReLU and the residual additions in place) and always through
+    PyTorch's native convolution kernels. Up to about 5 s of audio that is what ``model.encode`` runs too, so Φ is the
+    same bit for bit; for longer clips ``model.encode`` switches to oneDNN (see ``_NATIVE_CONV2D``), which sums in
+    another order: Φ then differs by float rounding (about 1e-6). Use :meth:`build`, which returns None for a model it
+    cannot run (BatchNorm not folded, other layers); callers then use ``model.encode``.
+
+    :param steps: (kind, convolution spec, relu) per layer; kind "conv" or "residual" (x + relu(conv(x))).
+    :param adapter: convolution spec of the 1x1 adapter.
+    :param projection: the shared projection (Linear + LayerNorm).
+    """
+
+    def __init__(self, steps: list, adapter: tuple, projection: nn.Sequential) -> None:
+        self.steps = steps
+        self.adapter = adapter
+        linear, norm = projection[0], projection[1]
+        self.linear = (linear.weight.detach(), linear.bias.detach())
+        self.norm = (tuple(norm.normalized_shape), norm.weight.detach(), norm.bias.detach(), norm.eps)
+
+    @staticmethod
+    def _conv_spec(conv: nn.Conv1d) -> tuple:
+        weight = conv.weight.detach()
+        return (weight, weight[:, :, None, :], conv.bias.detach(), conv.kernel_size[0], conv.stride[0],
+                conv.padding[0], conv.dilation[0])
+
+    @classmethod
+    def build(cls, model: InstructionModel) -> AudioInference | None:
+        """The fast audio path of ``model`` (folded with :func:`fold_batchnorm`), or None when it has other layers.
+
+        :param model: the network, in eval mode with BatchNorm folded.
+        """
+        encoder = model.encoders["audio"]
+        if not isinstance(encoder, AudioEncoder) or not isinstance(model.projection[1], nn.LayerNorm):
+            return None
+
+        def plain(conv: nn.Module) -> bool:
+            return isinstance(conv, nn.Conv1d) and conv.groups == 1 and conv.padding_mode == "zeros" and \
+                conv.bias is not None and isinstance(conv.padding, tuple)
+
+        steps: list = []
+        for layer in encoder.net:
+            if isinstance(layer, nn.Identity):
+                continue
+            if plain(layer):
+                steps.append(("conv", cls._conv_spec(layer), False))
+            elif isinstance(layer, nn.ReLU) and steps and steps[-1][0] == "conv" and not steps[-1][2]:
+                steps[-1] = ("conv", steps[-1][1], True)
+            elif isinstance(layer, _Residual1d) and isinstance(layer.norm, nn.Identity) and plain(layer.conv):
+                steps.append(("residual", cls._conv_spec(layer.conv), True))
+            else:
+                return None
+        adapter = model.adapters["audio"]
+        if not plain(adapter):
+            return None
+        return cls(steps, cls._conv_spec(adapter), model.projection)
+
+    @staticmethod
+    def _conv(x: torch.Tensor, spec: tuple) -> torch.Tensor:
+        """One convolution with PyTorch's native kernel (``F.conv1d`` when this PyTorch does not expose it)."""
+        weight, weight2d, bias, kernel, stride, padding, dilation = spec
+        if dilation == 1 and _NATIVE_CONV2D is not None:
+            return _NATIVE_CONV2D(x[:, :, None, :], weight2d, (1, kernel), bias, (1, stride), (0, padding))[:, :, 0]
+        if dilation > 1 and _NATIVE_DILATED2D is not None:
+            return _NATIVE_DILATED2D(x[:, :, None, :], weight2d, (1, kernel), bias, (1, stride), (0, padding),
+                                     (1, dilation))[:, :, 0]
+        return F.conv1d(x, weight, bias, stride, padding, dilation)
+
+    def __call__(self, features: torch.Tensor) -> torch.Tensor:
+        """Φ (B, T', LATENT_DIM) of log-mel features (B, N_MELS, T) (call under ``torch.inference_mode``).
+
+        :param features: normalised log-mel features.
+        """
+        x = features
+        for kind, spec, relu in self.steps:
+            y = self._conv(x, spec)
+            if relu:
+                y = y.relu_()
+            x = y.add_(x) if kind == "residual" else y
+        x = self._conv(x, self.adapter).transpose(1, 2)
+        return F.layer_norm(F.linear(x, *self.linear), *self.norm)
