@@ -106,12 +106,13 @@ def test_audio_inference_equals_model_encode():
     fast = AudioInference.build(folded)
     assert fast is not None
     with torch.inference_mode():
-        for frames in (7, 100, 400, 513, 900):
+        # up to 426 frames no convolution input exceeds 20,480 values (oneDNN's threshold for a batch of one)
+        for frames, exact in ((7, True), (100, True), (426, True), (513, False), (900, False)):
             features = torch.randn(1, N_MELS, frames)
             want, _ = folded.encode("audio", features, torch.tensor([frames]))
             got = fast(features)
             assert got.shape == want.shape
-            if frames * N_MELS <= 20480:
+            if exact:
                 assert torch.equal(got, want), frames
             else:
                 assert torch.allclose(got, want, atol=1e-4), frames
