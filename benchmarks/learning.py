@@ -30,18 +30,24 @@ from tqdm import tqdm  # noqa: E402
 
 import vafn_gym  # noqa: E402,F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark, episode_rates  # noqa: E402
-from zoo.hyperparams import load_hyperparams  # noqa: E402
+from zoo.hyperparams import load_hyperparams, load_training_env_kwargs  # noqa: E402
 from zoo.plot import confidence_half_width  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 
 SUCCESS_TARGET = 0.95
 
 
+def training_env_kwargs(args: argparse.Namespace) -> dict:
+    """The training env's kwargs: the YAML's ``env_kwargs`` (training only), ``--hyperparams``' and ``--env-kwargs``."""
+    return {**load_training_env_kwargs(args.algo, args.env), **args.hyperparams.get("env_kwargs", {}),
+            **args.env_kwargs}
+
+
 def train_one(args: argparse.Namespace, seed: int, benchmark: InstructionBenchmark) -> tuple[list[dict], object]:
     """Train one seed; returns its evaluation rows (the last one on every test task) and the model."""
     kwargs, yaml_steps, policy = load_hyperparams(args.algo, args.env)
-    kwargs.update(args.hyperparams)
-    env = gym.make(args.env, max_length=args.train_max_length, **args.env_kwargs)
+    kwargs.update({key: value for key, value in args.hyperparams.items() if key != "env_kwargs"})
+    env = gym.make(args.env, max_length=args.train_max_length, **training_env_kwargs(args))
     model = require_algorithm(args.algo)(policy, env, seed=seed, verbose=0, **kwargs)
     steps = args.steps or yaml_steps
     rows, wall0, cpu0 = [], time.perf_counter(), time.process_time()
@@ -91,7 +97,8 @@ def main() -> None:
     parser.add_argument("--algo", default="sac", help="zoo key of the algorithm (sac, mtsac, maml_sac, ...)")
     parser.add_argument("--env", default="VAFN/ThreeArmReach-v1", help="env ID")
     parser.add_argument("--env-kwargs", type=json.loads, default={}, help='JSON, e.g. \'{"inactive_arms": "policy"}\'')
-    parser.add_argument("--hyperparams", type=json.loads, default={}, help="JSON overrides of the YAML values")
+    parser.add_argument("--hyperparams", type=json.loads, default={},
+                        help="JSON overrides of the YAML values (its env_kwargs configure the training env only)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="training seeds")
     parser.add_argument("--steps", type=int, default=None, help="env steps per seed (default: the YAML's n_timesteps)")
     parser.add_argument("--train-max-length", type=int, default=3, help="longest training instruction")
@@ -121,7 +128,9 @@ def main() -> None:
             writer.writeheader()
             writer.writerows(rows)
     seeds = sorted({row["seed"] for row in rows})
-    summary = {"algo": args.algo, "env": args.env, "env_kwargs": args.env_kwargs, "hyperparams": args.hyperparams,
+    summary = {"algo": args.algo, "env": args.env, "env_kwargs": args.env_kwargs,
+               "train_env_kwargs": training_env_kwargs(args),
+               "hyperparams": args.hyperparams,
                "train_max_length": args.train_max_length, "command": " ".join(sys.argv), **summarise(rows, seeds)}
     (args.out / f"{name}_summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary, indent=2))

@@ -417,12 +417,36 @@ def test_safety_margin_penalises_proximity_without_counting_a_collision():
         (MULTI, dict(max_length=11), "max_length"),
         (REACH, dict(history=0), "history"),
         (REACH, dict(history=2.5), "history"),
+        (REACH, dict(success_tolerance=0.0), "success_tolerance"),
+        (REACH, dict(success_tolerance=0.5), "success_tolerance"),
         (MULTI, dict(split_seed=1.5), "split_seed"),
     ],
 )
 def test_constructor_arguments_are_validated_at_construction(env_id, kwargs, name):
     with pytest.raises((ValueError, TypeError), match=name):
         gym.make(env_id, **kwargs)
+
+
+@pytest.mark.parametrize("tolerance", [0.03, 0.08])
+def test_success_tolerance_is_the_distance_at_which_a_waypoint_counts(tolerance):
+    env = gym.make(REACH, instruction="1", success_tolerance=tolerance)
+    try:
+        base = env.unwrapped
+        env.reset(seed=0)
+        target = base.instruction[0].target_array
+        distances = []
+        terminated = False
+        while not terminated:
+            distances.append(np.linalg.norm(base.arms[1].ee_position - target))
+            action = np.zeros(9, dtype=np.float32)
+            action[:3] = np.clip((target - base.arms[1].ee_position) / 0.1, -0.2, 0.2)  # slow: no step jumps far in
+            _, _, terminated, truncated, info = env.step(action)
+            assert not truncated
+        assert info["is_success"]
+        assert min(distances) >= tolerance  # every step that ended outside the tolerance left the waypoint pending
+        assert np.linalg.norm(base.arms[1].ee_position - target) < tolerance
+    finally:
+        env.close()
 
 
 def test_max_steps_is_validated_and_used():

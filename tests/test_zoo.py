@@ -19,8 +19,10 @@ from optuna.trial import TrialState
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
+from vafn_gym.constants import SUCCESS_TOLERANCE  # noqa: E402
 from zoo import plot as zoo_plot  # noqa: E402
 from zoo.experiment import _merge_policy_kwargs, _yaml_policy_kwargs  # noqa: E402
+from zoo.run_config import load_run_config  # noqa: E402
 from zoo.tuning import WORKER_ATTR, open_storage, recover_stale_trials  # noqa: E402
 from zoo.registry import UNAVAILABLE, VAFN_ALGOS, register_algorithms  # noqa: E402
 from zoo.train import complete_argv, main as train_main  # noqa: E402
@@ -90,6 +92,30 @@ def test_train_every_algorithm_from_its_yaml(algo: str, tmp_path: Path) -> None:
     assert {"successes", "collisions"} <= set(evaluations.files), evaluations.files
     assert evaluations["collisions"].shape == evaluations["successes"].shape == (1, 1)
     assert (run / "0.monitor.csv").read_text().splitlines()[1].split(",")[-2:] == ["is_success", "collided"]
+
+
+def test_yaml_env_kwargs_configure_the_training_env_only(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from vafn_gym.envs import MultiArmEnv
+
+    register_algorithms()
+    built = []
+    original = MultiArmEnv.__init__
+
+    def recording_init(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        built.append((self.task.success_tolerance, self.sampler.max_length))
+
+    monkeypatch.setattr(MultiArmEnv, "__init__", recording_init)
+    train_main([
+        "--algo", "sac", "--env", ENV_ID, "-n", "200", "-f", str(tmp_path), "--seed", "0", "--eval-freq", "200",
+        "--eval-episodes", "1", "-params", *fast_params("sac"), "--env-kwargs", *FAST_ENV_KWARGS,
+    ])
+    yaml_tolerance = yaml.safe_load((REPO_ROOT / "hyperparams" / "sac.yml").read_text())[ENV_ID]["env_kwargs"]
+    assert yaml_tolerance["success_tolerance"] < SUCCESS_TOLERANCE
+    # the training env: the YAML's tolerance and the command line's max_length; the evaluation env: the command line's
+    assert set(built) == {(yaml_tolerance["success_tolerance"], 1), (SUCCESS_TOLERANCE, 1)}
+    saved = load_run_config(tmp_path / "sac" / f"{ENV_NAME}_1" / ENV_NAME / "config.yml")
+    assert saved["env_kwargs"] == {**yaml_tolerance, "max_length": 1}
 
 
 def test_sampled_policy_kwargs_merge_with_the_yaml() -> None:

@@ -103,11 +103,13 @@ class InstructionTask:
     :param reward_type: "dense" or "sparse".
     :param reward: the dense-reward weights.
     :param homes: rest point per arm (default: the layout's nominal home points; the env passes the measured ones).
+    :param success_tolerance: distance (m) at which the active arm has reached its waypoint.
     """
 
     def __init__(
         self, layout: ArmLayout, targets: str = "default", inactive_arms: str = "hold", reward_type: str = "dense",
         reward: RewardConfig | None = None, homes: Mapping[int, np.ndarray] | None = None,
+        success_tolerance: float = SUCCESS_TOLERANCE,
     ) -> None:
         self.layout = layout
         self.targets = targets
@@ -115,6 +117,7 @@ class InstructionTask:
         self.reward_type = reward_type
         self.reward_config = reward or RewardConfig()
         self.homes = dict(homes) if homes is not None else {arm: layout.home_point(arm) for arm in layout.arm_ids}
+        self.success_tolerance = success_tolerance
         self.instruction = Instruction()
         self.waypoint_index = 0
         self.steps = 0
@@ -187,7 +190,7 @@ class InstructionTask:
             log_progress = np.log(distance_before + weights.precision_scale) - np.log(
                 distance_after + weights.precision_scale
             )
-            if distance_after < SUCCESS_TOLERANCE:
+            if distance_after < self.success_tolerance:
                 reached = 1
                 self.waypoint_index += 1
         if self.reward_type == "sparse":

@@ -9,6 +9,9 @@
 * an RDB ``--storage`` URL (PostgreSQL, MySQL, SQLite) is opened with Optuna heartbeats
   (:func:`zoo.tuning.open_storage`) and the zoo's optimisation loop runs on that storage object, so a trial whose
   worker died on any host is failed and re-queued by the next worker;
+* ``--env-kwargs`` update the YAML's ``env_kwargs`` key by key (rl_zoo3 replaces them whole); as in rl_zoo3, the
+  YAML's ``env_kwargs`` configure the training env only, and the evaluation env gets ``--env-kwargs`` (or
+  ``--eval-env-kwargs``) alone;
 * ``maml_sac`` warns when ``-n`` leaves no step after ``warmup_steps`` (no meta-iteration would run).
 """
 
@@ -111,6 +114,18 @@ class VAFNExperimentManager(ExperimentManager):
         if convert and "policy_kwargs" in params:
             params[TUNED_POLICY_KWARGS] = params.pop("policy_kwargs")
         return params
+
+    def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
+        """The zoo's, with ``--env-kwargs`` merged into the YAML's training ``env_kwargs`` instead of replacing them."""
+        cli, self.env_kwargs = self.env_kwargs, {}  # an empty CLI value keeps rl_zoo3 from replacing the YAML's
+        try:
+            hyperparams, saved_hyperparams = super().read_hyperparameters()
+        finally:
+            self.env_kwargs = cli
+        if "env_kwargs" in hyperparams:
+            merged = {**hyperparams["env_kwargs"], **cli}
+            hyperparams["env_kwargs"] = saved_hyperparams["env_kwargs"] = merged
+        return hyperparams, saved_hyperparams
 
     def _preprocess_hyperparams(self, hyperparams: dict[str, Any]) -> tuple:
         """The zoo's preprocessing, then merge tuned policy_kwargs into the YAML/CLI ones (CLI keys win)."""

@@ -29,6 +29,7 @@ from vafn_gym.constants import (
     PHASE_WAITING,
     PHYSICS_DT,
     POS_SLICE,
+    SUCCESS_TOLERANCE,
     V_MAX,
     WORKSPACE_HIGH,
     WORKSPACE_LOW,
@@ -50,6 +51,8 @@ SETTLE_STEPS = 20
 MARKER_RADIUS = 0.02
 TABLE_COLOUR = (0.55, 0.4, 0.25, 1.0)
 MAX_RENDER_SIZE = 4096
+#: Largest ``success_tolerance`` (metres): beyond it a "reach" no longer means much in this workspace.
+MAX_SUCCESS_TOLERANCE = 0.2
 #: Largest ``history`` (readings per arm block).
 MAX_HISTORY = 64
 
@@ -82,6 +85,9 @@ class MultiArmEnv(gym.Env):
     :param reward_kwargs: overrides of :class:`RewardConfig` weights, e.g. ``dict(progress_weight=5.0)``.
     :param terminate_on_collision: end the episode at the first arm-arm contact.
     :param safety_margin: if > 0, also penalise arm pairs closer than this (metres, from ``getClosestPoints``).
+    :param success_tolerance: distance (m) at which a waypoint counts as reached (default 0.05). Training with a smaller
+        value than the one evaluated on moves the deterministic policy's resting point inside the evaluated tolerance:
+        see docs/learning.md, "Training tolerance".
     :param max_steps: truncation horizon; ``None`` gives ``50 + 80 * len(instruction)``. (``gym.make``'s own
         ``max_episode_steps`` adds Gymnasium's ``TimeLimit`` wrapper on top, as for any env.)
     :param render_mode: "rgb_array" (headless TinyRenderer) or "human" (GUI window; needs a display).
@@ -110,6 +116,7 @@ class MultiArmEnv(gym.Env):
         reward_kwargs: Mapping[str, Any] | None = None,
         terminate_on_collision: bool = False,
         safety_margin: float = 0.0,
+        success_tolerance: float = SUCCESS_TOLERANCE,
         max_steps: int | None = None,
         render_mode: str | None = None,
         render_width: int = 480,
@@ -168,7 +175,10 @@ class MultiArmEnv(gym.Env):
         for arm in self.arms.values():
             arm.settle()
         homes = {arm_id: arm.home for arm_id, arm in self.arms.items()}
-        self.task = InstructionTask(layout, self.targets, self.inactive_arms, reward_type, reward, homes)
+        self.task = InstructionTask(
+            layout, self.targets, self.inactive_arms, reward_type, reward, homes,
+            check_number("success_tolerance", success_tolerance, 1e-3, MAX_SUCCESS_TOLERANCE),
+        )
 
         self.reading_size = OBS_PER_ARM_WITH_GOAL if self.observe_goal else OBS_PER_ARM
         self.obs_per_arm = self.reading_size * self.history
