@@ -55,6 +55,18 @@ def num_frames(num_samples: int, sample_rate: int) -> int:
     return num_samples // hop + 1
 
 
+def _log_mel_power(waveforms: torch.Tensor, sample_rate: int) -> torch.Tensor:
+    """Log mel power (B, N_MELS, T) of a (B, N) batch, centred frames, before normalisation."""
+    import torch
+
+    n_fft, win, hop = frame_params(sample_rate)
+    mel, window = mel_filterbank(sample_rate)
+    spec = torch.stft(waveforms, n_fft=n_fft, hop_length=hop, win_length=win, window=window, center=True,
+                      pad_mode="constant", return_complex=True)
+    power = spec.real.square() + spec.imag.square()
+    return torch.matmul(mel, power).add_(LOG_EPS).log_()
+
+
 def log_mel_batch(
     waveforms: torch.Tensor, lengths: torch.Tensor, sample_rate: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -67,12 +79,8 @@ def log_mel_batch(
     """
     import torch
 
-    n_fft, win, hop = frame_params(sample_rate)
-    mel, window = mel_filterbank(sample_rate)
-    spec = torch.stft(waveforms, n_fft=n_fft, hop_length=hop, win_length=win, window=window, center=True,
-                      pad_mode="constant", return_complex=True)
-    power = spec.real.square() + spec.imag.square()
-    features = torch.log(torch.matmul(mel, power) + LOG_EPS)  # (B, N_MELS, T)
+    features = _log_mel_power(waveforms, sample_rate)
+    _, _, hop = frame_params(sample_rate)
     frames = torch.clamp(lengths // hop + 1, max=features.shape[-1])
     mask = (torch.arange(features.shape[-1])[None, :] < frames[:, None]).to(features.dtype)[:, None, :]
     count = frames.to(features.dtype)[:, None, None]
@@ -94,12 +102,7 @@ def log_mel(waveform: np.ndarray, sample_rate: int) -> torch.Tensor:
     import torch
 
     tensor = torch.from_numpy(np.ascontiguousarray(waveform, dtype=np.float32))[None]
-    n_fft, win, hop = frame_params(sample_rate)
-    mel, window = mel_filterbank(sample_rate)
-    spec = torch.stft(tensor, n_fft=n_fft, hop_length=hop, win_length=win, window=window, center=True,
-                      pad_mode="constant", return_complex=True)
-    power = spec.real.square() + spec.imag.square()
-    features = torch.matmul(mel, power).add_(LOG_EPS).log_()  # (1, N_MELS, T)
+    features = _log_mel_power(tensor, sample_rate)
     count = torch.full((1, 1, 1), features.shape[-1], dtype=features.dtype)  # centred frames: every one is valid
     mean = features.sum(-1, keepdim=True) / count
     centered = features - mean
