@@ -326,6 +326,42 @@ def test_reward_terms_split_the_reward():
     assert sum(rates[name] for name in terms) == pytest.approx(rates["return"], abs=1e-6)
 
 
+class _CentrePolicy:
+    """Pushes every arm toward the table centre, through SB3's ``predict``."""
+
+    def __init__(self, env: gym.Env) -> None:
+        self.base = env.unwrapped
+
+    def predict(self, obs, deterministic=True):
+        return np.concatenate(
+            [np.clip((np.array([0.0, 0.0, 0.3]) - arm.ee_position) * 20, -1, 1) for arm in self.base.arms.values()]
+        ), None
+
+
+class _StillPolicy:
+    """Never moves."""
+
+    def predict(self, obs, deterministic=True):
+        return np.zeros(9, dtype=np.float32), None
+
+
+def test_run_episode_says_where_an_episode_failed():
+    """A row names its outcome, the arm active when it went wrong and how long after the last waypoint."""
+    env = gym.make(REACH, instruction="2,1", inactive_arms="policy")
+    crash = run_episode(_CentrePolicy(env), env, seed=0)
+    assert (crash["outcome"], crash["failed_arm"], crash["collision"]) == ("collision", 2, 1.0)
+    assert 0 < crash["steps_after_waypoint"] <= crash["steps"]
+    env.close()
+    env = gym.make(REACH, instruction="3,1", max_episode_steps=40)
+    still = run_episode(_StillPolicy(), env, seed=0)
+    assert (still["outcome"], still["failed_arm"], still["steps_after_waypoint"]) == ("timeout", 3, still["steps"])
+    env.close()
+    env = gym.make(REACH, instruction="3,1")
+    done = run_episode(ScriptedController.for_env(env), env, seed=0)
+    assert (done["outcome"], done["failed_arm"], done["success"]) == ("success", None, 1.0)
+    env.close()
+
+
 def drive_to_centre(env: gym.Env, steps: int) -> tuple[list[float], list[dict]]:
     """Push every arm toward the table centre (in "policy" mode) and collect rewards and infos."""
     base = env.unwrapped

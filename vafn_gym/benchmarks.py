@@ -92,30 +92,45 @@ def run_episode(policy: Any, env: gym.Env, seed: int | None, deterministic: bool
 
     A policy with a ``reset()`` method (e.g. :class:`ScriptedController`) is reset first.
 
-    :return: ``return``, ``success`` (1.0/0.0), ``collision`` (any arm-arm contact), ``steps``, ``waypoints_reached``
-        and ``return_terms`` (the return split by reward term, from ``info["reward_terms"]`` where the env reports it).
+    :return: ``return``, ``success`` (1.0/0.0), ``collision`` (any arm-arm contact), ``steps``, ``waypoints_reached``,
+        ``return_terms`` (the return split by reward term, from ``info["reward_terms"]`` where the env reports it) and
+        where the episode went wrong: ``outcome`` (``"success"``, ``"collision"`` or ``"timeout"``), ``failed_arm``
+        (the active arm at the first contact or at the end; ``None`` after a success) and ``steps_after_waypoint``
+        (env steps from the last reached waypoint, or the start, to the first contact or the end).
     """
     reset = getattr(policy, "reset", None)
     if callable(reset):
         reset()
     obs, _ = env.reset(seed=seed)
     total, steps, collided, terms = 0.0, 0, False, {}
+    waypoint, waypoint_step, failure = 0, 0, None
     while True:
         action, _ = policy.predict(obs, deterministic=deterministic)
         obs, reward, terminated, truncated, info = env.step(action)
         total += float(reward)
         steps += 1
-        collided |= bool(info.get("collision", False))
+        if int(info.get("waypoint_index", 0)) != waypoint:
+            waypoint, waypoint_step = int(info.get("waypoint_index", 0)), steps
+        if info.get("collision", False) and not collided:
+            collided, failure = True, ("collision", info.get("active_arm"), steps - waypoint_step)
         for name, value in info.get("reward_terms", {}).items():
             terms[name] = terms.get(name, 0.0) + float(value)
         if terminated or truncated:
+            success = bool(info.get("is_success", False))
+            if failure is None and success:
+                failure = ("success", None, 0)
+            elif failure is None:
+                failure = ("timeout", info.get("active_arm"), steps - waypoint_step)
             return {
                 "return": total,
-                "success": float(bool(info.get("is_success", False))),
+                "success": float(success),
                 "collision": float(collided),
                 "steps": steps,
-                "waypoints_reached": int(info.get("waypoint_index", 0)),
+                "waypoints_reached": waypoint,
                 "return_terms": terms,
+                "outcome": failure[0],
+                "failed_arm": failure[1],
+                "steps_after_waypoint": failure[2],
             }
 
 

@@ -1,0 +1,73 @@
+"""Where a trained policy fails: its failed held-out episodes counted by outcome, failing arm and timing.
+
+    python benchmarks/failures.py runs/models/sac_seed0.zip --env-kwargs '{"inactive_arms": "policy"}'
+    python benchmarks/failures.py --pretrained sac
+
+Runs the policy once on each held-out test instruction (:class:`vafn_gym.InstructionBenchmark`, lengths 1-10, the
+episodes of every other benchmark) and counts the failed episodes by outcome (collision or timeout), the arm that was
+active when it went wrong, and whether it went wrong within ``--handover-steps`` env steps of the previous waypoint
+(a hand-over: the next arm set off while the last one was still near its target). Prints a Markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import Counter
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO_ROOT))
+
+import torch  # noqa: E402
+
+from vafn_gym import InstructionBenchmark, episode_rates  # noqa: E402
+from vafn_sb3 import load_pretrained  # noqa: E402
+from vafn_sb3.loading import load_model  # noqa: E402
+
+
+def failure_table(rows: list[dict], handover_steps: int) -> list[str]:
+    """Markdown rows counting the failed episodes of ``rows`` (:func:`vafn_gym.run_episode` rows)."""
+    counts = Counter(
+        (row["outcome"], row["failed_arm"], row["steps_after_waypoint"] <= handover_steps)
+        for row in rows if row["outcome"] != "success"
+    )
+    lines = [f"| outcome | active arm | within {handover_steps} steps of the last waypoint | episodes |",
+             "|---|---|---|---|"]
+    for (outcome, arm, handover), count in counts.most_common():
+        lines.append(f"| {outcome} | {arm} | {'yes' if handover else 'no'} | {count} |")
+    return lines
+
+
+def main() -> None:
+    """Evaluate one saved or packaged policy and print its failures."""
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    parser.add_argument("model", nargs="?", type=Path, help="a saved model (.zip or weights-only file)")
+    parser.add_argument("--pretrained", default=None, help="evaluate a packaged policy instead (e.g. sac)")
+    parser.add_argument("--algo", default=None, help="force the model's algorithm key")
+    parser.add_argument("--env", default="VAFN/ThreeArmReach-v1", help="env ID")
+    parser.add_argument("--env-kwargs", type=json.loads, default={},
+                        help="JSON, e.g. '{\"inactive_arms\": \"policy\"}'")
+    parser.add_argument("--n-test", type=int, default=100, help="held-out test instructions")
+    parser.add_argument("--handover-steps", type=int, default=10,
+                        help="a failure this many env steps or fewer after a waypoint counts as at the hand-over")
+    args = parser.parse_args()
+    if (args.model is None) == (args.pretrained is None):
+        parser.error("give a model path or --pretrained ALGO (one of them)")
+    torch.set_num_threads(1)
+    if args.pretrained is not None:
+        model = load_pretrained(args.pretrained, env_id=args.env)
+    else:
+        model, _ = load_model(args.model, args.algo)
+    rows = InstructionBenchmark(args.env, 1, 10, n_test=args.n_test, env_kwargs=args.env_kwargs).evaluate(model)
+    rates = episode_rates(rows)
+    print(f"{len(rows)} held-out instructions: success {rates['success']:.2f}, collision rate "
+          f"{rates['collision']:.2f}, {sum(r['outcome'] != 'success' for r in rows)} failed\n")
+    print("\n".join(failure_table(rows, args.handover_steps)))
+
+
+if __name__ == "__main__":
+    main()
