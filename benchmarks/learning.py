@@ -109,7 +109,8 @@ def main() -> None:
     parser.add_argument("--tag", default="", help="suffix of the output files")
     parser.add_argument("--save", type=Path, default=None, help="folder for each seed's final model")
     parser.add_argument("--append", action="store_true",
-                        help="keep the other seeds' rows of an existing curves file; the summary covers all its seeds")
+                        help="keep the other seeds' rows of an existing curves file (re-read after every seed, so "
+                        "parallel processes with different --seeds can share it); the summary covers all its seeds")
     args = parser.parse_args()
     torch.set_num_threads(1)
     register_algorithms()
@@ -117,16 +118,20 @@ def main() -> None:
     name = f"{args.algo}_{args.env.split('/')[-1]}{args.tag}"
     args.out.mkdir(parents=True, exist_ok=True)
     curves = args.out / f"{name}_curves.csv"
-    rows = read_curves(curves, exclude=args.seeds) if args.append and curves.is_file() else []
+    own: list[dict] = []
     for seed in args.seeds:
         seed_rows, model = train_one(args, seed, benchmark)
-        rows.extend(seed_rows)
+        own.extend(seed_rows)
         if args.save is not None:
             model.save(args.save / f"{name}_seed{seed}")
-        with curves.open("w", newline="") as handle:  # rewritten after every seed
+        # Re-read just before writing, so seeds run in parallel processes with --append all land in one file.
+        rows = (read_curves(curves, exclude=args.seeds) if args.append and curves.is_file() else []) + own
+        partial = curves.with_name(f".{curves.name}.{os.getpid()}")
+        with partial.open("w", newline="") as handle:  # rewritten after every seed
             writer = csv.DictWriter(handle, fieldnames=list(dict.fromkeys(k for r in rows for k in r)), restval="nan")
             writer.writeheader()
             writer.writerows(rows)
+        partial.replace(curves)
     seeds = sorted({row["seed"] for row in rows})
     summary = {"algo": args.algo, "env": args.env, "env_kwargs": args.env_kwargs,
                "train_env_kwargs": training_env_kwargs(args),

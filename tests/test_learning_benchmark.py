@@ -1,0 +1,47 @@
+"""``benchmarks/learning.py``'s curves file: seeds trained by parallel processes with ``--append`` share it."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load_learning_module():
+    spec = importlib.util.spec_from_file_location("learning_benchmark", ROOT / "benchmarks" / "learning.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def fake_rows(seed: int) -> list[dict]:
+    return [{"seed": seed, "timesteps": 10, "n_tasks": 2, "wall_s": 1.0, "cpu_s": 1.0, "success": 0.5,
+             "collision": 0.0, "episode_steps": 50.0, "waypoint_fraction": 0.5}]
+
+
+def test_parallel_appends_keep_every_seed(tmp_path, monkeypatch):
+    """Process A (seed 0) starts; B (seed 1) finishes while A trains; A's write must keep B's seed."""
+    learning = load_learning_module()
+    argv = [str(ROOT / "benchmarks" / "learning.py"), "--out", str(tmp_path), "--append", "--n-test", "2"]
+
+    def other_process_finishes():
+        monkeypatch.setattr(sys, "argv", argv + ["--seeds", "1"])
+        learning.main()
+
+    def train_one(args, seed, benchmark):
+        if seed == 0:
+            other_process_finishes()
+        return fake_rows(seed), None
+
+    monkeypatch.setattr(learning, "train_one", train_one)
+    monkeypatch.setattr(sys, "argv", argv + ["--seeds", "0"])
+    learning.main()
+    name = "sac_ThreeArmReach-v1"
+    with (tmp_path / f"{name}_curves.csv").open(newline="") as handle:
+        assert sorted(int(row["seed"]) for row in csv.DictReader(handle)) == [0, 1]
+    assert json.loads((tmp_path / f"{name}_summary.json").read_text())["seeds"] == [0, 1]
+    assert not list(tmp_path.glob(".*")), "no partial file left behind"
