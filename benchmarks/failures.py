@@ -66,7 +66,8 @@ def main() -> None:
     rates = episode_rates(rows)
     print(f"{len(rows)} held-out instructions: success {rates['success']:.2f}, collision rate "
           f"{rates['collision']:.2f}, {sum(r['outcome'] != 'success' for r in rows)} failed\n")
-    print("\n".join(failure_table(rows, args.handover_steps)))
+    if any(row["outcome"] != "success" for row in rows):
+        print("\n".join(failure_table(rows, args.handover_steps)))
 
 
 if __name__ == "__main__":
