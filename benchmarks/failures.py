@@ -27,11 +27,10 @@ from vafn_sb3 import load_pretrained  # noqa: E402
 from vafn_sb3.loading import load_model  # noqa: E402
 
 
-def failure_table(rows: list[dict], handover_steps: int) -> list[str]:
-    """Markdown rows counting the failed episodes of ``rows`` (:func:`vafn_gym.run_episode` rows)."""
+def failure_table(failed: list[dict], handover_steps: int) -> list[str]:
+    """Markdown rows counting the failed episodes ``failed`` (:func:`vafn_gym.run_episode` rows)."""
     counts = Counter(
-        (row["outcome"], row["failed_arm"], row["steps_after_waypoint"] <= handover_steps)
-        for row in rows if row["outcome"] != "success"
+        (row["outcome"], row["failed_arm"], row["steps_after_waypoint"] <= handover_steps) for row in failed
     )
     lines = [f"| outcome | active arm | within {handover_steps} steps of the last waypoint | episodes |",
              "|---|---|---|---|"]
@@ -64,10 +63,11 @@ def main() -> None:
         model, _ = load_model(args.model, args.algo)
     rows = InstructionBenchmark(args.env, 1, 10, n_test=args.n_test, env_kwargs=args.env_kwargs).evaluate(model)
     rates = episode_rates(rows)
+    failed = [row for row in rows if row["outcome"] != "success"]
     print(f"{len(rows)} held-out instructions: success {rates['success']:.2f}, collision rate "
-          f"{rates['collision']:.2f}, {sum(r['outcome'] != 'success' for r in rows)} failed\n")
-    if any(row["outcome"] != "success" for row in rows):
-        print("\n".join(failure_table(rows, args.handover_steps)))
+          f"{rates['collision']:.2f}, {len(failed)} failed\n")
+    if failed:
+        print("\n".join(failure_table(failed, args.handover_steps)))
 
 
 if __name__ == "__main__":

@@ -102,35 +102,39 @@ def run_episode(policy: Any, env: gym.Env, seed: int | None, deterministic: bool
     if callable(reset):
         reset()
     obs, _ = env.reset(seed=seed)
-    total, steps, collided, terms = 0.0, 0, False, {}
-    waypoint, waypoint_step, failure = 0, 0, None
+    total, steps, terms = 0.0, 0, {}
+    waypoint, waypoint_step = 0, 0
+    contact = None  # (active arm, steps after the last waypoint) at the first arm-arm contact
     while True:
         action, _ = policy.predict(obs, deterministic=deterministic)
         obs, reward, terminated, truncated, info = env.step(action)
         total += float(reward)
         steps += 1
-        if int(info.get("waypoint_index", 0)) != waypoint:
-            waypoint, waypoint_step = int(info.get("waypoint_index", 0)), steps
-        if info.get("collision", False) and not collided:
-            collided, failure = True, ("collision", info.get("active_arm"), steps - waypoint_step)
+        index = int(info.get("waypoint_index", 0))
+        if index != waypoint:
+            waypoint, waypoint_step = index, steps
+        if contact is None and info.get("collision", False):
+            contact = (info.get("active_arm"), steps - waypoint_step)
         for name, value in info.get("reward_terms", {}).items():
             terms[name] = terms.get(name, 0.0) + float(value)
         if terminated or truncated:
             success = bool(info.get("is_success", False))
-            if failure is None and success:
-                failure = ("success", None, 0)
-            elif failure is None:
-                failure = ("timeout", info.get("active_arm"), steps - waypoint_step)
+            if contact is not None:
+                outcome, (failed_arm, after) = "collision", contact
+            elif success:
+                outcome, failed_arm, after = "success", None, 0
+            else:
+                outcome, failed_arm, after = "timeout", info.get("active_arm"), steps - waypoint_step
             return {
                 "return": total,
                 "success": float(success),
-                "collision": float(collided),
+                "collision": float(contact is not None),
                 "steps": steps,
                 "waypoints_reached": waypoint,
                 "return_terms": terms,
-                "outcome": failure[0],
-                "failed_arm": failure[1],
-                "steps_after_waypoint": failure[2],
+                "outcome": outcome,
+                "failed_arm": failed_arm,
+                "steps_after_waypoint": after,
             }
 
 
