@@ -26,7 +26,6 @@ from vafn_gym import (  # noqa: E402
     InstructionBenchmark,
     ScriptedController,
     difficulty_of,
-    run_episode,
 )
 
 Z_95 = 1.959963984540054
@@ -57,19 +56,14 @@ def env_kwargs_from(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run(env_id: str, env_kwargs: dict[str, Any], n_tasks: int, seed: int) -> list[dict[str, Any]]:
-    """One scripted episode per held-out test task; one row per task."""
+    """One scripted episode per held-out test task (:meth:`InstructionBenchmark.evaluate`); one row per task."""
     benchmark = InstructionBenchmark(env_id, 1, 10, n_test=n_tasks, seed=seed, env_kwargs=env_kwargs)
-    env = benchmark.make_env()
-    controller = ScriptedController.for_env(env)
-    rows = []
+    probe = benchmark.make_env()
     try:
-        for index, task in enumerate(benchmark.test_tasks):
-            env.unwrapped.set_task(task)
-            row = run_episode(controller, env, benchmark.episode_seed(index))
-            rows.append({"task_index": index, "task": task.to_code(), "length": len(task), **row})
+        controller = ScriptedController.for_env(probe)
     finally:
-        env.close()
-    return rows
+        probe.close()
+    return benchmark.evaluate(controller)
 
 
 def summary_line(label: str, rows: list[dict[str, Any]]) -> str:
