@@ -466,3 +466,16 @@ def test_package_boundary_vafn_gym_never_imports_vafn_media():
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
+
+
+@pytest.mark.parametrize("train_only", ["audio", "image"])
+def test_train_only_one_modality_freezes_everything_else(train_only):
+    from vafn_media.model import InstructionModel
+    from vafn_media.train import trainable_parameters
+
+    model = InstructionModel()
+    trainable = {id(p) for p in trainable_parameters(model, train_only)}
+    own = {id(p) for part in (model.encoders[train_only], model.adapters[train_only]) for p in part.parameters()}
+    assert trainable == own
+    assert all(p.requires_grad == (id(p) in own) for p in model.parameters())
+    assert len(trainable_parameters(InstructionModel(), "all")) == len(list(model.parameters()))

@@ -7,6 +7,8 @@ from vafn_gym.constants import MAX_INSTRUCTION_LENGTH
 #: Arms the multimedia model names (its CTC vocabulary); the packaged checkpoint reads three-arm instructions, which
 #: is independent of how many arms an env has.
 NUM_ARMS: int = 3
+#: The learned input modalities, each with its own encoder and adapter (code is parsed, not learned).
+MODALITIES: tuple[str, ...] = ("audio", "image")
 
 # --- audio ---
 #: Rate every clip is resampled to before its features (Hz); inference accepts any rate in

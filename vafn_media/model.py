@@ -14,9 +14,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from vafn_media.constants import ENCODER_STRIDE, IMAGE_HEIGHT, LATENT_DIM, N_MELS, VOCAB_SIZE
-
-MODALITIES: tuple[str, ...] = ("audio", "image")
+from vafn_media.constants import ENCODER_STRIDE, IMAGE_HEIGHT, LATENT_DIM, MODALITIES, N_MELS, VOCAB_SIZE
 
 
 @dataclass

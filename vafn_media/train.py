@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from vafn_gym.files import atomic_write
-from vafn_media.constants import BLANK
+from vafn_media.constants import BLANK, MODALITIES
 
 #: Default paths of the packaged checkpoint (weights + JSON metadata).
 CHECKPOINT_DIR = Path(__file__).parent / "checkpoints"
@@ -131,6 +131,18 @@ def _cpu_seconds() -> float:
     return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
+def trainable_parameters(model, train_only: str) -> list:
+    """Parameters the optimiser updates: all, or one modality's encoder and adapter (everything else frozen)."""
+    if train_only == "all":
+        return list(model.parameters())
+    trainable = [*model.encoders[train_only].parameters(), *model.adapters[train_only].parameters()]
+    for parameter in model.parameters():
+        parameter.requires_grad_(False)
+    for parameter in trainable:
+        parameter.requires_grad_(True)
+    return trainable
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     """Command-line options of the training command."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -153,9 +165,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--camera-probability", type=float, default=0.5,
                         help="share of training images that are camera photos of cards (vafn_media.camera); > 0 also "
                              "re-renders every item's strips with the current image code (0: cached strips only)")
-    parser.add_argument("--train-only", choices=("all", "image"), default="all",
-                        help="'image': update only the image encoder and adapter; the audio path, the shared "
-                             "projection and the decoder stay frozen, so audio readings are unchanged")
+    parser.add_argument("--train-only", choices=("all", *MODALITIES), default="all",
+                        help="'image' or 'audio': update only that modality's encoder and adapter; the other path, "
+                             "the shared projection and the decoder stay frozen, so the other modality's readings "
+                             "are unchanged")
     return parser.parse_args(argv)
 
 
@@ -196,13 +209,7 @@ def main(argv=None) -> dict:
     model = InstructionModel(config)
     if args.init is not None:
         model.load_state_dict(torch.load(args.init, map_location="cpu", weights_only=True))
-    trainable = list(model.parameters())
-    if args.train_only == "image":
-        trainable = [*model.encoders["image"].parameters(), *model.adapters["image"].parameters()]
-        for parameter in model.parameters():
-            parameter.requires_grad_(False)
-        for parameter in trainable:
-            parameter.requires_grad_(True)
+    trainable = trainable_parameters(model, args.train_only)
     optimizer = torch.optim.AdamW(trainable, lr=args.lr, weight_decay=1e-4)
     scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=args.lr, total_steps=args.steps, pct_start=0.1)
     writer = _summary_writer(args.logdir)
@@ -210,16 +217,17 @@ def main(argv=None) -> dict:
     bar = tqdm(range(1, args.steps + 1), desc="training", unit="step")
     queue: list = []
     for step in bar:
-        if args.train_only == "image":  # frozen audio path: BatchNorm statistics must not move either
-            model.encoders["audio"].eval()
+        for modality in MODALITIES:  # a frozen path's BatchNorm statistics must not move either
+            if args.train_only not in ("all", modality):
+                model.encoders[modality].eval()
         if not queue:
             queue = bucketed_batches(train, args.batch_size, rng)
         batch = make_batch(train, queue.pop(), rng, camera=camera, camera_probability=args.camera_probability)
         targets, target_lengths = batch["targets"], batch["target_lengths"]
         flat_targets = torch.cat([targets[b, : int(target_lengths[b])] for b in range(len(targets))])
         losses, outputs = {}, {}
-        for modality in ("audio", "image"):
-            with torch.set_grad_enabled(args.train_only == "all" or modality == "image"):
+        for modality in MODALITIES:
+            with torch.set_grad_enabled(args.train_only in ("all", modality)):
                 phi, lengths = model.encode(modality, batch[modality], batch[f"{modality}_lengths"])
                 logits = model.decode(phi)
                 log_probs = logits.log_softmax(-1).transpose(0, 1)
