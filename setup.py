@@ -41,6 +41,7 @@ setup(
         "tqdm>=4.60",
         "rich>=13",
         "matplotlib>=3.7",
+        "scipy>=1.10",
     ],
     extras_require=EXTRAS,
     entry_points={"console_scripts": ["vafn-instruct=vafn_media.cli:main", "vafn-demo=vafn_sb3.demo:main"]},

@@ -50,11 +50,16 @@ from tqdm import tqdm  # noqa: E402
 import vafn_gym  # noqa: E402,F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark, RandomPolicy, ScriptedController  # noqa: E402
 from vafn_sb3.common.adaptation import evaluate_adaptation  # noqa: E402
-from zoo.plot import confidence_half_width  # noqa: E402
+from vafn_sb3.common.adaptation_curves import (  # noqa: E402
+    ADAPTATION_METRICS,
+    AdaptationCurve,
+    aggregate_adaptation,
+    plot_adaptation,
+)
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 
 DEFAULT_K = [0, 1, 2, 5, 10, 20, 50]
-METRICS = ("success_rate", "collision_rate", "return_mean")
+METRICS = tuple(ADAPTATION_METRICS)
 #: The reference policies every study includes (K = 0, no training).
 REFERENCES = ("scripted", "random")
 
@@ -139,56 +144,18 @@ def read_rows(path: Path) -> list[dict]:
                  for key, value in row.items()} for row in csv.DictReader(handle)]
 
 
-def summarise(rows: list[dict]) -> list[dict]:
-    """Per method and K: the mean over seeds of each seed's task mean, with a 95 % Student-t half width over seeds."""
+def summary_rows(curves: dict[str, dict[str, AdaptationCurve]]) -> list[dict]:
+    """``adaptation_summary.csv`` rows: per method and K, each metric's mean over seeds and its 95 % t half width."""
     summary = []
-    for method in dict.fromkeys(row["method"] for row in rows):
-        subset = [row for row in rows if row["method"] == method]
-        for k in sorted({row["k"] for row in subset}):
-            seeds = sorted({row["seed"] for row in subset})
-            entry: dict[str, Any] = {"method": method, "k": k, "n_seeds": len(seeds),
-                                     "n_tasks": sum(1 for row in subset if row["k"] == k and row["seed"] == seeds[0])}
+    for method, first in curves[METRICS[0]].items():
+        for index, k in enumerate(first.k):
+            entry: dict[str, Any] = {"method": method, "k": int(k), "n_seeds": first.n_seeds, "n_tasks": first.n_tasks}
             for metric in METRICS:
-                per_seed = np.array([[np.mean([row[metric] for row in subset if row["k"] == k and row["seed"] == s])]
-                                     for s in seeds])
-                entry[metric] = float(per_seed.mean())
-                entry[f"{metric}_ci95"] = float(confidence_half_width(per_seed)[0])
+                curve = curves[metric][method]
+                entry[metric] = float(curve.mean[index])
+                entry[f"{metric}_ci95"] = float(curve.half_width[index])
             summary.append(entry)
     return summary
-
-
-def plot(summary: list[dict], path: Path, title: str, k_max: int) -> None:
-    """Success, collision rate and return against K, one line per method (K = 0-only methods as flat lines)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
-    for index, method in enumerate(dict.fromkeys(entry["method"] for entry in summary)):
-        entries = [entry for entry in summary if entry["method"] == method]
-        ks = np.array([entry["k"] for entry in entries], dtype=float)
-        style = {"color": f"C{index}", "label": method}
-        if len(entries) == 1:  # evaluated at K = 0 only: draw it across the axis
-            ks, style["ls"], entries = np.array([0.0, k_max]), ("--" if method in REFERENCES else ":"), entries * 2
-        for ax, metric in zip(axes, METRICS, strict=True):
-            mean = np.array([entry[metric] for entry in entries])
-            half = np.array([entry[f"{metric}_ci95"] for entry in entries])
-            ax.plot(ks, mean, marker="o" if "ls" not in style else None, **style)
-            low, high = mean - half, mean + half
-            if metric.endswith("_rate"):
-                low, high = np.clip(low, 0, 1), np.clip(high, 0, 1)
-            ax.fill_between(ks, low, high, color=style["color"], alpha=0.15)
-    for ax, metric in zip(axes, METRICS, strict=True):
-        ax.set_xscale("symlog", linthresh=1)
-        ax.set_xlabel("adaptation steps K")
-        ax.set_title(metric.replace("_", " "))
-    axes[0].axhline(0.95, ls="-", c="grey", lw=0.5)
-    axes[0].legend(fontsize=7)
-    fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def write_csv(rows: list[dict], path: Path) -> None:
@@ -256,14 +223,15 @@ def main(argv: list[str] | None = None) -> None:
         previous = json.loads((args.out / "adaptation.json").read_text())["methods"]
         method_records = [m for m in previous if m["label"] not in replaced]
     rows = evaluate_references(args, tasks) + kept + evaluate_methods(methods, args, tasks)
-    summary = summarise(rows)
+    curves = aggregate_adaptation(rows)
+    summary = summary_rows(curves)
     write_csv(rows, args.out / "adaptation.csv")
     write_csv(summary, args.out / "adaptation_summary.csv")
     episodes = support_episodes(args, tasks)
     title = (f"{args.env}: {len(tasks)} held-out test instructions of lengths {args.min_length}-{args.max_length}; "
              f"support {args.n_support} env steps (~{episodes:.1f} episodes) per adaptation; "
              f"mean over seeds ± 95 % CI")
-    plot(summary, args.out / "adaptation.png", title, max(args.k))
+    plot_adaptation(curves, args.out / "adaptation.png", title, references=REFERENCES)
     meta = {"command": " ".join(sys.argv), "env": args.env, "env_kwargs": args.env_kwargs,
             "test_lengths": [args.min_length, args.max_length], "n_tasks": len(tasks), "benchmark_seed": benchmark.seed,
             "n_support_steps": args.n_support, "support_episodes_mean": episodes, "k": args.k,

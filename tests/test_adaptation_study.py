@@ -50,7 +50,7 @@ def test_method_parse_fails_clearly(study, tmp_path):
 def test_summary_is_a_mean_over_seeds_of_task_means_with_a_t_interval(study):
     rows = [{"method": "m", "seed": s, "k": 0, "success_rate": v, "collision_rate": 0.0, "return_mean": 1.0}
             for s, values in ((0, (1.0, 0.0)), (1, (1.0, 1.0))) for v in values]
-    (entry,) = study["summarise"](rows)
+    (entry,) = study["summary_rows"](study["aggregate_adaptation"](rows))
     assert entry["success_rate"] == pytest.approx(0.75) and entry["n_seeds"] == 2 and entry["n_tasks"] == 2
     assert entry["success_rate_ci95"] == pytest.approx(12.706 * 0.25, rel=1e-3)  # t(0.975, 1) * std / sqrt(2)
     assert entry["collision_rate_ci95"] == 0.0

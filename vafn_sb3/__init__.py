@@ -2,6 +2,7 @@
 
 from vafn_sb3.callbacks import MetaEvalCallback, RolloutCollisionCallback, SuccessCollisionEvalCallback
 from vafn_sb3.common.adaptation import Adaptable, AdaptedPolicy, collect_support, evaluate_adaptation
+from vafn_sb3.common.adaptation_curves import AdaptationCurve, aggregate_adaptation, plot_adaptation
 from vafn_sb3.maac import MAAC
 from vafn_sb3.maddpg import MADDPG
 from vafn_sb3.maml_sac import MAMLSAC
@@ -18,16 +19,19 @@ __all__ = [
     "MAPPO",
     "MTSAC",
     "Adaptable",
+    "AdaptationCurve",
     "AdaptedPolicy",
     "MetaEvalCallback",
     "OnlineController",
     "SAC",
     "RolloutCollisionCallback",
     "SuccessCollisionEvalCallback",
+    "aggregate_adaptation",
     "available_pretrained",
     "collect_support",
     "evaluate_adaptation",
     "load_pretrained",
+    "plot_adaptation",
     "pretrained_info",
 ]
 

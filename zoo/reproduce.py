@@ -46,12 +46,16 @@ from tqdm import tqdm  # noqa: E402
 
 from vafn_gym.benchmarks import DEFAULT_TEST_SEED  # noqa: E402
 from vafn_gym.constants import SUCCESS_TOLERANCE  # noqa: E402
-from zoo.plot import Aggregate, Curve, clip_rate, load_tensorboard, make_plots, mean_ci  # noqa: E402
+from vafn_sb3.common.adaptation_curves import (  # noqa: E402
+    ADAPTATION_METRICS,
+    AdaptationCurve,
+    aggregate_adaptation,
+    plot_adaptation,
+)
+from zoo.plot import load_tensorboard, make_plots  # noqa: E402
 
 #: The algorithms of Fig. 3, MAML-SAC first (the paper's comparison set).
 FIG3_ALGOS = ("maml_sac", "maac", "mappo", "maddpg", "mtsac")
-FIG3_METRICS = {"return_mean": "average return", "success_rate": "success rate", "collision_rate": "collision rate"}
-RATE_METRICS = ("success_rate", "collision_rate")
 #: Fig. 4's five phases, simple to complex (first and last as in the paper).
 FIG4_PHASES = ("1,2,3", "3,1,2", "1,3,2,1", "3,2,1,3,2", "2,3,1,3,2,3")
 FIG4_ENV = "VAFN/ThreeArmStream-v1"
@@ -204,55 +208,16 @@ def run_jobs(jobs: list[Job], n_workers: int) -> list[Job]:
     return sorted(done, key=lambda j: (FIG3_ALGOS.index(j.algo) if j.algo in FIG3_ALGOS else 99, j.seed))
 
 
-def fig3_aggregates(rows: list[dict[str, Any]]) -> dict[str, dict[str, Aggregate]]:
-    """``{metric: {algo: mean ± 95 % CI over seeds against K}}``; each seed is first averaged over tasks."""
-    result: dict[str, dict[str, Aggregate]] = {metric: {} for metric in FIG3_METRICS}
-    for algo in sorted({r["algo"] for r in rows}):
-        for metric in FIG3_METRICS:
-            curves = []
-            for seed in sorted({r["seed"] for r in rows if r["algo"] == algo}):
-                ks = sorted({r["k"] for r in rows if r["algo"] == algo and r["seed"] == seed})
-                values = [np.mean([r[metric] for r in rows if r["algo"] == algo and r["seed"] == seed and r["k"] == k])
-                          for k in ks]
-                curves.append(Curve(np.array(ks, float), np.array(values, float)))
-            agg = mean_ci(curves[0].steps, np.stack([c.values for c in curves]))
-            result[metric][algo] = clip_rate(agg) if metric in RATE_METRICS else agg  # a rate's CI stays in [0, 1]
-    return result
-
-
-def plot_fig3(aggregates: dict[str, dict[str, Aggregate]], mode: Mode, path: Path) -> Path:
-    """Fig. 3: three panels (return, success, collision) against adaptation steps K, one colour per algorithm."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 3, figsize=(14, 4))
-    colours = plt.get_cmap("tab10")
-    for ax, (metric, label) in zip(axes, FIG3_METRICS.items()):
-        for index, algo in enumerate(a for a in FIG3_ALGOS if a in aggregates[metric]):
-            agg = aggregates[metric][algo]
-            ax.plot(agg.x, agg.mean, marker="o", ms=3, color=colours(index), label=f"{algo} (n={agg.n_runs})")
-            if agg.n_runs > 1:
-                ax.fill_between(agg.x, agg.low, agg.high, color=colours(index), alpha=0.15)
-        ax.set_xlabel("adaptation steps K")
-        ax.set_ylabel(label)
-        if metric in RATE_METRICS:
-            ax.set_ylim(-0.05, 1.05)
-        ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
+def plot_fig3(aggregates: dict[str, dict[str, AdaptationCurve]], mode: Mode, path: Path) -> Path:
+    """Fig. 3: success, collision rate and return against adaptation steps K, one colour per algorithm."""
     seeds = ",".join(map(str, mode.seeds))
-    fig.suptitle(
+    title = (
         f"Fig. 3 ({mode.name}): adaptation on {_plural(mode.n_tasks, 'held-out test instruction')} of {mode.env_id} "
         f"(length {_lengths(mode.max_length)}); {mode.timesteps} training steps per algorithm, "
         f"{'seed' if len(mode.seeds) == 1 else 'seeds'} {seeds}, "
-        f"{mode.n_support} support steps; mean ± 95% CI over seeds", fontsize=9,
+        f"{mode.n_support} support steps; mean ± 95% CI over seeds"
     )
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return plot_adaptation(aggregates, path, title)
 
 
 def write_rows(rows: list[dict[str, Any]], path: Path) -> Path:
@@ -265,14 +230,14 @@ def write_rows(rows: list[dict[str, Any]], path: Path) -> Path:
     return path
 
 
-def fig3_summary_rows(aggregates: dict[str, dict[str, Aggregate]]) -> list[dict[str, Any]]:
+def fig3_summary_rows(aggregates: dict[str, dict[str, AdaptationCurve]]) -> list[dict[str, Any]]:
     """Long table of the Fig. 3 curves: algo, k, metric, mean, ci_low, ci_high, n_seeds."""
     rows = []
     for metric, per_algo in aggregates.items():
         for algo, agg in per_algo.items():
-            for k, mean, low, high in zip(agg.x, agg.mean, agg.low, agg.high):
+            for k, mean, low, high in zip(agg.k, agg.mean, agg.low, agg.high):
                 rows.append({"algo": algo, "k": int(k), "metric": metric, "mean": round(float(mean), 4),
-                             "ci_low": round(float(low), 4), "ci_high": round(float(high), 4), "n_seeds": agg.n_runs})
+                             "ci_low": round(float(low), 4), "ci_high": round(float(high), 4), "n_seeds": agg.n_seeds})
     return rows
 
 
@@ -411,16 +376,16 @@ def _lengths(max_length: int) -> str:
     return "1" if max_length == 1 else f"1-{max_length}"
 
 
-def _at_k(aggregates: dict[str, dict[str, Aggregate]], metric: str, algo: str, k: int) -> str:
+def _at_k(aggregates: dict[str, dict[str, AdaptationCurve]], metric: str, algo: str, k: int) -> str:
     agg = aggregates[metric].get(algo)
-    if agg is None or k not in agg.x:
+    if agg is None or k not in agg.k:
         return "n/a"
-    i = int(np.flatnonzero(agg.x == k)[0])
-    return f"{agg.mean[i]:.2f} [{agg.low[i]:.2f}, {agg.high[i]:.2f}]" if agg.n_runs > 1 else f"{agg.mean[i]:.2f}"
+    i = int(np.flatnonzero(agg.k == k)[0])
+    return f"{agg.mean[i]:.2f} [{agg.low[i]:.2f}, {agg.high[i]:.2f}]" if agg.n_seeds > 1 else f"{agg.mean[i]:.2f}"
 
 
-def write_summary(mode: Mode, jobs: list[Job], aggregates: dict[str, dict[str, Aggregate]], fig4_log: dict[str, Any],
-                  table: dict[str, Any], times: dict[str, float], out: Path) -> Path:
+def write_summary(mode: Mode, jobs: list[Job], aggregates: dict[str, dict[str, AdaptationCurve]],
+                  fig4_log: dict[str, Any], table: dict[str, Any], times: dict[str, float], out: Path) -> Path:
     """results/SUMMARY.md: each result beside the paper's claim, with commit, seeds, wall times and honest gaps."""
     changed = _git("status", "--porcelain", "--", "zoo", "vafn_sb3", "vafn_gym")
     dirty = " (working tree had uncommitted changes)" if changed else ""
@@ -500,7 +465,7 @@ def write_summary(mode: Mode, jobs: list[Job], aggregates: dict[str, dict[str, A
     return path
 
 
-def _fig3_verdict(best: tuple[float, str], aggregates: dict[str, dict[str, Aggregate]], mode: Mode) -> str:
+def _fig3_verdict(best: tuple[float, str], aggregates: dict[str, dict[str, AdaptationCurve]], mode: Mode) -> str:
     """One honest sentence comparing our Fig. 3 with the paper's claim."""
     success, algo = best
     maml = aggregates["success_rate"].get("maml_sac")
@@ -510,7 +475,7 @@ def _fig3_verdict(best: tuple[float, str], aggregates: dict[str, dict[str, Aggre
     if maml is not None and maml.mean.max() >= 0.95 and success <= maml.mean.max():
         return "MAML-SAC reaches the paper's level here and is the best algorithm."
     gain = "" if maml is None else (
-        f" MAML-SAC's success goes from {maml.mean[0]:.2f} at K=0 to {maml.mean[-1]:.2f} at K={int(maml.x[-1])}.")
+        f" MAML-SAC's success goes from {maml.mean[0]:.2f} at K=0 to {maml.mean[-1]:.2f} at K={int(maml.k[-1])}.")
     return (f"We fall short of the paper: the best success rate of any algorithm at any K is {success:.2f} ({algo}), "
             f"after only {mode.timesteps} training steps per algorithm on a shared 2-core CPU.{gain}")
 
@@ -574,7 +539,7 @@ def main(argv: list[str] | None = None) -> Path:
         [Job(algo, seed, mode, work, resume=args.resume) for algo in mode.algos for seed in mode.seeds], args.jobs
     )
     rows = [row for job in jobs for row in job.rows]
-    aggregates = fig3_aggregates(rows) if rows else {metric: {} for metric in FIG3_METRICS}
+    aggregates = aggregate_adaptation(rows, group="algo") if rows else {metric: {} for metric in ADAPTATION_METRICS}
     if rows:
         write_rows(rows, out / "fig3_adaptation.csv")
         write_rows(fig3_summary_rows(aggregates), out / "fig3_adaptation_summary.csv")

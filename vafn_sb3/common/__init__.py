@@ -1,1 +1,1 @@
-"""Shared pieces of the vafn algorithms: the fast-adaptation protocol and its evaluation."""
+"""Shared pieces of the vafn algorithms: the fast-adaptation protocol, its evaluation and its curves."""
