@@ -159,3 +159,18 @@ def episode_rates(rows: list[dict[str, Any]]) -> dict[str, float]:
             if all(name in t for t in terms):
                 rates[f"return_{name}"] = float(np.mean([t[name] for t in terms]))
     return rates
+
+
+#: Confidence level of every interval the benchmarks report.
+CONFIDENCE: float = 0.95
+
+
+def confidence_half_width(values: np.ndarray, confidence: float = CONFIDENCE) -> np.ndarray:
+    """Student-t half width of the mean over axis 0 of ``values`` (zeros with fewer than two rows, e.g. one seed)."""
+    from scipy import stats
+
+    values = np.asarray(values, float)
+    n = values.shape[0]
+    if n < 2:
+        return np.zeros(values.shape[1:])
+    return stats.t.ppf(0.5 + confidence / 2, n - 1) * values.std(axis=0, ddof=1) / np.sqrt(n)

@@ -25,6 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from vafn_gym.benchmarks import confidence_half_width
+
 #: metric -> TensorBoard tags tried in order (evaluation first, training rollouts as the fallback).
 TB_TAGS: dict[str, tuple[str, ...]] = {
     "return": ("eval/mean_reward", "rollout/ep_rew_mean"),
@@ -35,7 +37,6 @@ TB_TAGS: dict[str, tuple[str, ...]] = {
 NPZ_KEYS: dict[str, str] = {"return": "results", "success": "successes", "collision": "collisions"}
 RATE_METRICS = ("success", "collision")
 LABELS: dict[str, str] = {"return": "episode return", "success": "success rate", "collision": "collision rate"}
-CONFIDENCE = 0.95
 GRID_POINTS = 100
 RUN_SUFFIX = re.compile(r"_\d+$")
 
@@ -118,16 +119,6 @@ def load_evaluations(
                 values = np.asarray(data[key], float).mean(axis=1)
                 curves[metric][algo].append(Curve(np.asarray(data["timesteps"], float), values))
     return curves
-
-
-def confidence_half_width(values: np.ndarray, confidence: float = CONFIDENCE) -> np.ndarray:
-    """Student-t half width of the mean over axis 0 (zero with a single run)."""
-    from scipy import stats
-
-    n = values.shape[0]
-    if n < 2:
-        return np.zeros(values.shape[1:])
-    return stats.t.ppf(0.5 + confidence / 2, n - 1) * values.std(axis=0, ddof=1) / np.sqrt(n)
 
 
 def aggregate(curves: list[Curve], grid_points: int = GRID_POINTS) -> Aggregate:

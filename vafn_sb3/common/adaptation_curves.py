@@ -16,11 +16,12 @@ from typing import Any
 
 import numpy as np
 
+from vafn_gym.benchmarks import confidence_half_width
+
 __all__ = [
     "ADAPTATION_METRICS",
     "AdaptationCurve",
     "aggregate_adaptation",
-    "confidence_half_width",
     "plot_adaptation",
 ]
 
@@ -32,7 +33,6 @@ ADAPTATION_METRICS: dict[str, str] = {
 }
 #: Metrics whose confidence interval is clipped to [0, 1].
 RATE_METRICS = ("success_rate", "collision_rate")
-CONFIDENCE = 0.95
 
 
 @dataclass(frozen=True)
@@ -55,16 +55,6 @@ class AdaptationCurve:
     high: np.ndarray
     n_seeds: int
     n_tasks: int
-
-
-def confidence_half_width(values: np.ndarray, confidence: float = CONFIDENCE) -> np.ndarray:
-    """Student-t half width of the mean over axis 0 of ``values`` (zeros with fewer than two rows)."""
-    from scipy import stats
-
-    n = values.shape[0]
-    if n < 2:
-        return np.zeros(values.shape[1:])
-    return stats.t.ppf(0.5 + confidence / 2, n - 1) * values.std(axis=0, ddof=1) / np.sqrt(n)
 
 
 def aggregate_adaptation(
