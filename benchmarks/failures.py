@@ -61,7 +61,7 @@ def main() -> None:
         model = load_pretrained(args.pretrained, env_id=args.env)
     else:
         model, _ = load_model(args.model, args.algo)
-    rows = InstructionBenchmark(args.env, 1, 10, n_test=args.n_test, env_kwargs=args.env_kwargs).evaluate(model)
+    rows = InstructionBenchmark(args.env, n_test=args.n_test, env_kwargs=args.env_kwargs).evaluate(model)
     rates = episode_rates(rows)
     failed = [row for row in rows if row["outcome"] != "success"]
     print(f"{len(rows)} held-out instructions: success {rates['success']:.2f}, collision rate "

@@ -29,9 +29,8 @@ import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import vafn_gym  # noqa: E402,F401  (registers the env IDs)
-from vafn_gym import InstructionBenchmark, episode_rates  # noqa: E402
+from vafn_gym import InstructionBenchmark, confidence_half_width, episode_rates  # noqa: E402
 from zoo.hyperparams import load_hyperparams, load_training_env_kwargs  # noqa: E402
-from vafn_gym.benchmarks import confidence_half_width  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 
 SUCCESS_TARGET = 0.95

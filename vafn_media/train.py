@@ -210,6 +210,7 @@ def main(argv=None) -> dict:
     if args.init is not None:
         model.load_state_dict(torch.load(args.init, map_location="cpu", weights_only=True))
     trainable = trainable_parameters(model, args.train_only)
+    frozen = [modality for modality in MODALITIES if args.train_only not in ("all", modality)]
     optimizer = torch.optim.AdamW(trainable, lr=args.lr, weight_decay=1e-4)
     scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=args.lr, total_steps=args.steps, pct_start=0.1)
     writer = _summary_writer(args.logdir)
@@ -217,9 +218,8 @@ def main(argv=None) -> dict:
     bar = tqdm(range(1, args.steps + 1), desc="training", unit="step")
     queue: list = []
     for step in bar:
-        for modality in MODALITIES:  # a frozen path's BatchNorm statistics must not move either
-            if args.train_only not in ("all", modality):
-                model.encoders[modality].eval()
+        for modality in frozen:  # a frozen path's BatchNorm statistics must not move either
+            model.encoders[modality].eval()
         if not queue:
             queue = bucketed_batches(train, args.batch_size, rng)
         batch = make_batch(train, queue.pop(), rng, camera=camera, camera_probability=args.camera_probability)
@@ -227,7 +227,7 @@ def main(argv=None) -> dict:
         flat_targets = torch.cat([targets[b, : int(target_lengths[b])] for b in range(len(targets))])
         losses, outputs = {}, {}
         for modality in MODALITIES:
-            with torch.set_grad_enabled(args.train_only in ("all", modality)):
+            with torch.set_grad_enabled(modality not in frozen):
                 phi, lengths = model.encode(modality, batch[modality], batch[f"{modality}_lengths"])
                 logits = model.decode(phi)
                 log_probs = logits.log_softmax(-1).transpose(0, 1)
