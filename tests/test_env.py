@@ -362,6 +362,27 @@ def test_run_episode_says_where_an_episode_failed():
     env.close()
 
 
+class _CountingRecurrentPolicy:
+    """Never moves; its "hidden state" counts the steps since the episode start (as an LSTM's would carry memory)."""
+
+    def __init__(self):
+        self.seen: list[tuple[bool, int]] = []
+
+    def predict(self, obs, state=None, episode_start=None, deterministic=True):
+        count = 0 if episode_start[0] else state + 1
+        self.seen.append((bool(episode_start[0]), count))
+        return np.zeros(9, dtype=np.float32), count
+
+
+def test_run_episode_threads_a_recurrent_policys_state_through_the_episode():
+    env = gym.make(REACH, instruction="3,1", max_episode_steps=5)
+    policy = _CountingRecurrentPolicy()
+    for _ in range(2):
+        assert run_episode(policy, env, seed=0)["steps"] == 5
+    assert policy.seen == [(True, 0), (False, 1), (False, 2), (False, 3), (False, 4)] * 2
+    env.close()
+
+
 def drive_to_centre(env: gym.Env, steps: int) -> tuple[list[float], list[dict]]:
     """Push every arm toward the table centre (in "policy" mode) and collect rewards and infos."""
     base = env.unwrapped

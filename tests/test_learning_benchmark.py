@@ -45,3 +45,15 @@ def test_parallel_appends_keep_every_seed(tmp_path, monkeypatch):
         assert sorted(int(row["seed"]) for row in csv.DictReader(handle)) == [0, 1]
     assert json.loads((tmp_path / f"{name}_summary.json").read_text())["seeds"] == [0, 1]
     assert not list(tmp_path.glob(".*")), "no partial file left behind"
+
+
+def test_recurrent_baseline_trains_and_is_evaluated_on_the_hidden_family(tmp_path, monkeypatch):
+    """sb3-contrib's RecurrentPPO (zoo key ppo_lstm) runs through the benchmark from hyperparams/ppo_lstm.yml."""
+    learning = load_learning_module()
+    monkeypatch.setattr(sys, "argv", [
+        str(ROOT / "benchmarks" / "learning.py"), "--algo", "ppo_lstm", "--env", "VAFN/ThreeArmReachHidden-v1",
+        "--seeds", "0", "--steps", "64", "--eval-every", "64", "--n-eval", "1", "--n-test", "1",
+        "--hyperparams", '{"n_steps": 64, "batch_size": 32, "n_epochs": 1}', "--out", str(tmp_path)])
+    learning.main()
+    summary = json.loads((tmp_path / "ppo_lstm_ThreeArmReachHidden-v1_summary.json").read_text())
+    assert summary["algo"] == "ppo_lstm" and summary["n_test"] == 1 and 0.0 <= summary["success"]["mean"] <= 1.0

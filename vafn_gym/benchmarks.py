@@ -7,6 +7,8 @@ so two numbers from two scripts are comparable.
 
 from __future__ import annotations
 
+import inspect
+
 from typing import Any
 
 import gymnasium as gym
@@ -90,7 +92,9 @@ class InstructionBenchmark:
 def run_episode(policy: Any, env: gym.Env, seed: int | None, deterministic: bool = True) -> dict[str, Any]:
     """One episode of ``policy`` (anything with SB3's ``predict``) on ``env``'s current task.
 
-    A policy with a ``reset()`` method (e.g. :class:`ScriptedController`) is reset first.
+    A policy with a ``reset()`` method (e.g. :class:`ScriptedController`) is reset first; a policy whose ``predict``
+    takes ``state`` and ``episode_start`` (every SB3 model, e.g. RecurrentPPO) gets its recurrent state threaded
+    through the episode.
 
     :return: ``return``, ``success`` (1.0/0.0), ``collision`` (any arm-arm contact), ``steps``, ``waypoints_reached``,
         ``return_terms`` (the return split by reward term, from ``info["reward_terms"]`` where the env reports it) and
@@ -101,12 +105,19 @@ def run_episode(policy: Any, env: gym.Env, seed: int | None, deterministic: bool
     reset = getattr(policy, "reset", None)
     if callable(reset):
         reset()
+    # a recurrent SB3 policy (e.g. sb3-contrib's RecurrentPPO) carries its hidden state from step to step
+    recurrent = "episode_start" in inspect.signature(policy.predict).parameters
+    state, episode_start = None, np.ones(1, dtype=bool)
     obs, _ = env.reset(seed=seed)
     total, steps, terms = 0.0, 0, {}
     waypoint, waypoint_step = 0, 0
     contact = None  # (active arm, steps after the last waypoint) at the first arm-arm contact
     while True:
-        action, _ = policy.predict(obs, deterministic=deterministic)
+        if recurrent:
+            action, state = policy.predict(obs, state=state, episode_start=episode_start, deterministic=deterministic)
+            episode_start = np.zeros(1, dtype=bool)
+        else:
+            action, _ = policy.predict(obs, deterministic=deterministic)
         obs, reward, terminated, truncated, info = env.step(action)
         total += float(reward)
         steps += 1
