@@ -223,6 +223,33 @@ def test_fusion_weighs_every_modalitys_evidence_and_calibrates():
     assert agree.method == "agree" and agree.arms == [1, 2] and all(c > 0.99 for c in agree.confidences)
 
 
+def test_fusion_calibration_never_lets_fusion_lose_to_the_better_modality():
+    from vafn_media.calibration import CalibrationSet, calibrate_fusion
+
+    right_soft, right_sharp = _reading([0, 2, 0, 3, 0, 1, 0, 0], 0.5), _reading([0, 2, 0, 3, 0, 1, 0, 0], 1.0)
+    wrong_soft, wrong_sharp = _reading([0, 2, 2, 0, 3, 3, 0, 0], 0.5), _reading([0, 2, 2, 0, 3, 3, 0, 0], 1.0)
+    label = [(2, 3, 1)]
+    unseen_voice = CalibrationSet("audio confidently wrong", [wrong_sharp], [right_soft], label)
+    cutout = CalibrationSet("image wrong", [right_sharp], [wrong_soft], label)
+    grid = (0.6, 1.0, 2.0, 3.0)
+    both = calibrate_fusion([unseen_voice, cutout], grid)
+    assert both["fusion_weights"] == {"audio": 1.0, "image": 2.0}        # the only weight right on both sets
+    assert both["calibration"]["worst_margin_by_image_weight"] == {"0.6": -1.0, "1.0": -1.0, "2.0": 0.0, "3.0": -1.0}
+    assert calibrate_fusion([cutout], grid)["fusion_weights"]["image"] == 1.0   # ties: the more even weighting
+    assert calibrate_fusion([unseen_voice], (0.6, 1.0))["calibration"]["worst_margin_by_image_weight"]["1.0"] < 0
+
+
+def test_condition_calibration_sets_read_training_voices_under_every_condition(generator):
+    from vafn_media.augment import CONDITIONS
+    from vafn_media.calibration import condition_sets
+
+    sets = condition_sets(generator, count=2, seed=3)
+    assert [s.name for s in sets] == [f"training voices, {c}" for c in CONDITIONS] + [
+        "training voices, Table 1 noise + Cutout"]
+    assert all(len(s.audio) == len(s.image) == len(s.labels) == 2 for s in sets)
+    assert all(0.0 <= s.accuracy(m) <= 1.0 for s in sets for m in ("audio", "image"))
+
+
 # --- the stream ----------------------------------------------------------------------------------------------------
 def test_stream_never_enqueues_bad_or_cut_input(generator, tmp_path):
     from vafn_gym.queue import InstructionQueue

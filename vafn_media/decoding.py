@@ -158,5 +158,5 @@ def fuse(readings: dict[str, Decoded], decoder: torch.nn.Module, weights: dict[s
     winner = list(candidates[best])
     backer = max(names, key=lambda n: (tuple(readings[n].arms) == candidates[best], trust[n]))
     cap = min(float(posterior[best]), trust[backer])
-    token_conf = [max(float(np.exp(readings[n].log_probs[:, a].max())) for n in names) for a in winner]
+    token_conf = [max(float(readings[n].log_probs[:, a].max().exp()) for n in names) for a in winner]
     return Fused(winner, [min(c, cap) for c in token_conf], "rescored", cap)

@@ -136,15 +136,16 @@ class SpeechItem:
     image: np.ndarray
 
 
-def speech_items(engine: str, count: int, seed: int) -> list[SpeechItem]:
-    """Held-out spoken instructions (lengths 1-10, random phrasings) from ``engine``: "espeak" (held-out voices and
-    variants only, synthesised in this process) or an evaluation engine of :mod:`vafn_media.engines`.
+def speech_items(engine: str, count: int, seed: int, heldout: bool = True) -> list[SpeechItem]:
+    """Spoken instructions (lengths 1-10, random phrasings) from ``engine``: "espeak" (synthesised in this process)
+    or an evaluation engine of :mod:`vafn_media.engines`.
 
     "fast" renditions are made by the engine itself (espeak: 1.4x its rate; flite: duration stretch 0.7).
 
     :param engine: "espeak" or a name from :func:`vafn_media.engines.available_engines`.
     :param count: number of items.
     :param seed: seed of labels, voices, phrasings and images.
+    :param heldout: espeak only: held-out voices, variants and fonts (False: the training ones, for calibration).
     """
     from dataclasses import replace
 
@@ -157,9 +158,9 @@ def speech_items(engine: str, count: int, seed: int) -> list[SpeechItem]:
         rng = np.random.default_rng([seed, i])
         arms = tuple(int(a) for a in rng.integers(1, 4, int(rng.integers(1, 11))))
         template = int(rng.integers(len(TEMPLATES)))
-        image = render_strip(arms, np.random.default_rng([seed, i, 7]), heldout=True)
+        image = render_strip(arms, np.random.default_rng([seed, i, 7]), heldout=heldout)
         if engine == "espeak":
-            voice = sample_voice(rng, heldout=True)
+            voice = sample_voice(rng, heldout=heldout)
             clean = speak(arms, voice, template)
             fast = speak(arms, replace(voice, rate=min(450, int(voice.rate * 1.4))), template)
             items.append(SpeechItem(arms, clean, ESPEAK_SAMPLE_RATE, fast, ESPEAK_SAMPLE_RATE, image))
@@ -171,13 +172,29 @@ def speech_items(engine: str, count: int, seed: int) -> list[SpeechItem]:
     return items
 
 
+def degraded_clip(item: SpeechItem, condition: str, seed: int, index: int) -> tuple[np.ndarray, int]:
+    """The item's clip under ``condition`` with 0.25 s of silence around it (as a recording would have): (wave, rate).
+
+    :param item: from :func:`speech_items`.
+    :param condition: one of :data:`vafn_media.augment.CONDITIONS` ("fast" uses the engine's own fast rendition).
+    :param seed: seed of the degradation noise and rooms.
+    :param index: the item's index (the degradation of item ``index`` is seeded by ``[seed, index]``).
+    """
+    from vafn_media.augment import apply_condition
+
+    source, rate = (item.fast, item.fast_rate) if condition == "fast" else (item.waveform, item.sample_rate)
+    pad = np.zeros(int(0.25 * rate), np.float32)
+    return apply_condition(np.concatenate([pad, source, pad]), rate, "clean" if condition == "fast" else condition,
+                           np.random.default_rng([seed, index]))
+
+
 def robust_cell(transcribe: Callable[..., object], items: list[SpeechItem], condition: str, seed: int,
                 with_image: bool = False) -> dict[str, float]:
     """Accuracy of one (engine, condition) cell, audio alone or audio + the item's clean image.
 
     Returns exact-sequence accuracy, digit accuracy (1 - edit distance / reference digits), the share of results
     flagged ``low_confidence``, of inputs rejected with ValueError, of *wrong and unflagged* results, and the mean
-    thread-CPU time per call. Silence of 0.25 s is added around each clip (as a recording would have).
+    thread-CPU time per call. Each clip is made by :func:`degraded_clip`.
 
     :param transcribe: ``InstructionGenerator.transcribe``.
     :param items: from :func:`speech_items`.
@@ -185,16 +202,9 @@ def robust_cell(transcribe: Callable[..., object], items: list[SpeechItem], cond
     :param seed: seed of the degradation noise and rooms.
     :param with_image: also give the clean image.
     """
-    from vafn_media.augment import apply_condition
-
     exact, digits, total, flagged, rejected, silent_wrong, cpu = 0, 0, 0, 0, 0, 0, []
     for i, item in enumerate(items):
-        source, rate = (item.fast, item.fast_rate) if condition == "fast" else (item.waveform, item.sample_rate)
-        pad = np.zeros(int(0.25 * rate), np.float32)
-        source = np.concatenate([pad, source, pad])
-        waveform, rate = apply_condition(source, rate, "clean" if condition == "fast" else condition,
-                                         np.random.default_rng([seed, i]))
-        kwargs = {"audio": (waveform, rate)}
+        kwargs = {"audio": degraded_clip(item, condition, seed, i)}
         if with_image:
             kwargs["image"] = item.image
         start = time.thread_time()

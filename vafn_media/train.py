@@ -181,8 +181,9 @@ def main(argv=None) -> dict:
     from tqdm import tqdm
 
     from vafn_media.batching import bucketed_batches, make_batch
-    from vafn_media.calibration import calibrate_fusion
+    from vafn_media.calibration import calibrate_generator
     from vafn_media.dataset import DEFAULT_CACHE, build_cache
+    from vafn_media.generator import InstructionGenerator
     from vafn_media.model import InstructionModel, ModelConfig
 
     torch.set_num_threads(1)
@@ -277,7 +278,7 @@ def main(argv=None) -> dict:
         "torch": torch.__version__,
         "validation": history,
     }
-    metadata.update(calibrate_fusion(model, validation["test"]))
+    metadata.update(calibrate_generator(InstructionGenerator(model, metadata), validation["test"]))
     metadata["total_seconds"] = round(time.time() - started, 1)
     metadata["cpu_seconds"] = round(_cpu_seconds(), 1)
     atomic_write(args.out / f"{CHECKPOINT_NAME}.json", lambda tmp: tmp.write_text(json.dumps(metadata, indent=2)))
