@@ -310,8 +310,8 @@ def table1(args: argparse.Namespace, generator, started: float) -> None:
     lines = [f"Held-out split (unseen voices/variants, handwriting and fonts); {args.seeds} seeds x {args.items} items "
              f"per cell; accuracy = exact sequence match (mean ± std over seeds); "
              f"time per instruction on 1 CPU thread, "
-             f"features included (mean ± std over items). Fusion reliability weights (calibrated by vafn_media.calibration "
-             f"on training voices and glyph sets, never on these items): {weights}.",
+             f"features included (mean ± std over items). Fusion reliability weights (calibrated by "
+             f"vafn_media.calibration on training voices and glyph sets, never on these items): {weights}.",
              f"Wall time depends on machine load "
              f"(1-min load average at start: {load[0]:.1f} on {os.cpu_count()} cores); "
              "CPU time is the thread CPU time of the call, which other processes affect much less.", "",
