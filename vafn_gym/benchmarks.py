@@ -8,7 +8,6 @@ so two numbers from two scripts are comparable.
 from __future__ import annotations
 
 import inspect
-
 from typing import Any
 
 import gymnasium as gym
