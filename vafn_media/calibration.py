@@ -19,12 +19,14 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from vafn_media.constants import MODALITIES
+
 #: Candidate reliability weights of the image relative to audio (1.0 = equal trust).
 IMAGE_WEIGHT_GRID: tuple[float, ...] = (0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.2, 1.5, 2.0)
 #: Seed and size of the cached calibration split (in-distribution "test" split: training voices and glyph sets).
 CALIBRATION_SEED: int = 0
 CALIBRATION_ITEMS: int = 500
-#: Seed and size of the channel-condition calibration set (training voices; the benchmark uses other seeds).
+#: Seed and size of each benchmark-condition calibration set (training voices; the benchmarks use other seeds).
 CONDITION_SEED: int = 7
 CONDITION_ITEMS: int = 300
 
@@ -101,13 +103,10 @@ def cached_sets(model, data) -> list[CalibrationSet]:
 
 def _read_audio(generator, source):
     """Greedy audio reading of a ``(waveform, rate)`` source, or None when the input is rejected."""
-    from vafn_media.audio import load_audio
-
     try:
-        clip = load_audio(source)
+        return generator.read_audio(source)[0]
     except ValueError:
         return None
-    return generator.read(generator.encode_audio(clip.waveform, clip.sample_rate))
 
 
 def condition_sets(generator, count: int = CONDITION_ITEMS, seed: int = CONDITION_SEED) -> list[CalibrationSet]:
@@ -121,13 +120,9 @@ def condition_sets(generator, count: int = CONDITION_ITEMS, seed: int = CONDITIO
     from vafn_media.augment import CONDITIONS
     from vafn_media.dataset import generate_raw
     from vafn_media.evaluation import corrupted_inputs, degraded_clip, speech_items
-    from vafn_media.images import canonical_strip
-
-    def read_image(image):
-        return generator.read(generator.encode_strip(canonical_strip(image)))
 
     items = speech_items("espeak", count, seed, heldout=False)
-    images = [read_image(item.image) for item in items]
+    images = [generator.read_image(item.image) for item in items]
     sets = [CalibrationSet(f"training voices, {condition}",
                            [_read_audio(generator, degraded_clip(item, condition, seed, i)) for i, item in
                             enumerate(items)], images, [item.arms for item in items])
@@ -136,7 +131,8 @@ def condition_sets(generator, count: int = CONDITION_ITEMS, seed: int = CONDITIO
     noisy = [corrupted_inputs(raw, seed, i, "Audio-Visual (noise)") for i in range(count)]
     sets.append(CalibrationSet("training voices, Table 1 noise + Cutout",
                                [_read_audio(generator, kwargs["audio"]) for kwargs in noisy],
-                               [read_image(kwargs["image"]) for kwargs in noisy], [tuple(a) for a in raw.arms]))
+                               [generator.read_image(kwargs["image"]) for kwargs in noisy],
+                               [tuple(a) for a in raw.arms]))
     return sets
 
 
@@ -152,7 +148,7 @@ def calibrate_fusion(sets: Sequence[CalibrationSet], grid: Sequence[float] = IMA
     from vafn_media.decoding import fuse, reading_confidence
 
     platt = {}
-    for modality in ("audio", "image"):
+    for modality in MODALITIES:
         pairs = [(r, y) for s in sets for r, y in zip(getattr(s, modality), s.labels) if r is not None]
         platt[modality] = fit_platt([reading_confidence(r) for r, _ in pairs], [tuple(r.arms) == y for r, y in pairs])
     accuracy: dict[float, list[float]] = {}
@@ -162,7 +158,8 @@ def calibrate_fusion(sets: Sequence[CalibrationSet], grid: Sequence[float] = IMA
                                       {"audio": 1.0, "image": weight}, platt).arms) == y
                            for a, i, y in zip(s.audio, s.image, s.labels)]))
             for s in sets]
-    best_single = [max(s.accuracy("audio"), s.accuracy("image")) for s in sets]
+    single = {m: [s.accuracy(m) for s in sets] for m in MODALITIES}
+    best_single = [max(a, i) for a, i in zip(single["audio"], single["image"])]
     worst_margin = {w: min(a - b for a, b in zip(accuracy[w], best_single)) for w in grid}
     best = max(grid, key=lambda w: (round(worst_margin[w], 6), round(float(np.mean(accuracy[w])), 6),
                                     -abs(np.log(w))))
@@ -171,8 +168,7 @@ def calibrate_fusion(sets: Sequence[CalibrationSet], grid: Sequence[float] = IMA
         "fusion_weights": {"audio": 1.0, "image": best},
         "calibration": {
             "sets": [s.name for s in sets],
-            "audio": [round(s.accuracy("audio"), 4) for s in sets],
-            "image": [round(s.accuracy("image"), 4) for s in sets],
+            **{m: [round(a, 4) for a in values] for m, values in single.items()},
             "av_by_image_weight": {str(w): [round(a, 4) for a in accuracy[w]] for w in grid},
             "worst_margin_by_image_weight": {str(w): round(m, 4) for w, m in worst_margin.items()},
         },

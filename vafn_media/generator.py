@@ -127,7 +127,7 @@ class InstructionGenerator:
         self.encode_audio(rng.normal(0, 0.1, SAMPLE_RATE).astype(np.float32), SAMPLE_RATE)
         from vafn_media.strips import render_strip
 
-        self.read(self.encode_strip(canonical_strip(render_strip([1, 2, 3], rng))))
+        self.read_image(render_strip([1, 2, 3], rng))
 
     # --- encoders ---
     def encode_audio(self, waveform: np.ndarray, sample_rate: int):
@@ -170,6 +170,22 @@ class InstructionGenerator:
         with self._torch.inference_mode():
             return greedy_decode(phi, self.model.decode(phi))
 
+    def read_audio(self, audio: AudioSource, sample_rate: int | None = None):
+        """Greedy reading of validated audio and the clip's quality warnings; ValueError when it is unusable.
+
+        :param audio: as :meth:`transcribe`'s ``audio``.
+        :param sample_rate: sample rate of a bare waveform.
+        """
+        clip = load_audio(audio, sample_rate)
+        return self.read(self.encode_audio(clip.waveform, clip.sample_rate)), clip.warnings
+
+    def read_image(self, image: ImageSource):
+        """Greedy reading of an image of digits in a row; ValueError when it is unusable.
+
+        :param image: as :meth:`transcribe`'s ``image``.
+        """
+        return self.read(self.encode_strip(canonical_strip(image)))
+
     # --- public API ---
     def transcribe(self, audio: AudioSource | None = None, image: ImageSource | None = None,
                    code: str | list | Instruction | None = None, sample_rate: int | None = None) -> Transcription:
@@ -194,23 +210,19 @@ class InstructionGenerator:
         warnings: list[str] = []
         dropped: dict[str, str] = {}
         readings = {}
-        phis = {}
         if "code" in given:
             instruction = Instruction.coerce(given["code"], n_arms=NUM_ARMS)  # ValueError on malformed code
         if "audio" in given:
             try:
-                clip = load_audio(given["audio"], sample_rate)
-                warnings += clip.warnings
-                phis["audio"] = self.encode_audio(clip.waveform, clip.sample_rate)
+                readings["audio"], clip_warnings = self.read_audio(given["audio"], sample_rate)
+                warnings += clip_warnings
             except ValueError as error:
                 dropped["audio"] = str(error)
         if "image" in given:
             try:
-                phis["image"] = self.encode_strip(canonical_strip(given["image"]))
+                readings["image"] = self.read_image(given["image"])
             except ValueError as error:
                 dropped["image"] = str(error)
-        for name, phi in phis.items():
-            readings[name] = self.read(phi)
         if "code" in given:
             return self._code_result(instruction, readings, warnings, dropped, started)
         if not readings:
