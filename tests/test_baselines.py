@@ -17,6 +17,7 @@ from vafn_sb3.common.agents import (
     SharedAgentSACPolicy,
     nearest_neighbour,
     per_agent_sum,
+    shared_actor_for_env,
     substitute_agent_actions,
 )
 from vafn_sb3.maac import MAAC, MAACPolicy
@@ -24,6 +25,7 @@ from vafn_sb3.maddpg import MADDPG, MADDPGPolicy
 from vafn_sb3.mappo import MAPPO, MAPPOPolicy
 from vafn_sb3.mappo.policies import ValueNorm
 from vafn_sb3.mtsac import MTSAC
+from vafn_sb3.sac import SAC
 
 ENV_ID = "VAFN/ThreeArmReach-v1"
 #: The N-arm env (keyword ``n_arms``) of the tests that need rollouts for several numbers of agents.
@@ -224,6 +226,23 @@ def test_actor_without_ids_transfers_to_another_number_of_agents(name):
         return policy.actor(o) if name == "MADDPG" else policy.actor.get_action_dist_params(o)[0]
 
     th.testing.assert_close(mean_action(large, obs.repeat(1, 2)), mean_action(small, obs).repeat(1, 2))
+
+
+def test_shared_actor_for_env_runs_a_three_arm_actor_on_six_arms():
+    """The public transfer call: same action on every arm's block as the 3-arm model; clear errors otherwise."""
+    three, six = (gym.make("VAFN/MultiArmReach-v1", n_arms=n, frame="base") for n in (3, 6))
+    model = SAC("SharedAgentPolicy", three, policy_kwargs=dict(net_arch=[16], agent_ids=False), buffer_size=10)
+    policy = shared_actor_for_env(model, six)
+    obs3, _ = three.reset(seed=0)
+    obs6 = np.tile(obs3, 2)
+    action6 = policy.predict(obs6, deterministic=True)[0]
+    np.testing.assert_allclose(action6, np.tile(model.predict(obs3, deterministic=True)[0], 2), atol=1e-5)
+    with pytest.raises(ValueError, match="one-hot ids of 3 agents"):
+        shared_actor_for_env(SAC("SharedAgentPolicy", three, buffer_size=10), six)
+    with pytest.raises(ValueError, match="no shared per-agent actor"):
+        shared_actor_for_env(SAC("MlpPolicy", three, buffer_size=10), six)
+    with pytest.raises(ValueError, match="do not split"):
+        shared_actor_for_env(model, gym.make("VAFN/MultiArmReach-v1", n_arms=6, observe_goal=True))
 
 
 def test_agent_ids_are_checked_against_the_number_of_agents():

@@ -137,7 +137,8 @@ def test_check_env_for_every_robot_and_arm_count(n_arms, robot):
 
 
 @pytest.mark.parametrize(
-    "env_kwargs", [{"n_arms": 4}, {"robot": "panda"}, {"robot": "xarm"}, {"n_arms": 4, "observe_goal": True}]
+    "env_kwargs", [{"n_arms": 4}, {"robot": "panda"}, {"robot": "xarm"}, {"n_arms": 4, "observe_goal": True},
+                   {"n_arms": 6, "frame": "base"}, {"n_arms": 3, "frame": "base", "observe_goal": True}]
 )
 def test_scripted_controller_solves_other_layouts_and_robots(env_kwargs):
     """A few held-out tasks each (200 each: benchmarks/scripted_ceiling.py)."""
@@ -149,3 +150,45 @@ def test_scripted_controller_solves_other_layouts_and_robots(env_kwargs):
     env.close()
     for row in benchmark.evaluate(controller):
         assert row["success"] == 1.0 and row["collision"] == 0.0, row
+
+
+@pytest.mark.parametrize("n_arms", [3, 6])
+def test_base_frame_is_each_arms_own_frame(n_arms):
+    """frame="base": a point toward the centre has +x, every arm sees the same numbers at home and the same goal."""
+    layout = ArmLayout(n_arms=n_arms)
+    for arm in layout.arm_ids:
+        np.testing.assert_allclose(layout.to_base_frame(arm, layout.base_position(arm)), 0.0, atol=1e-12)
+        np.testing.assert_allclose(layout.to_base_frame(arm, np.zeros(3)), [layout.base_radius, 0, 0], atol=1e-12)
+        np.testing.assert_allclose(layout.base_to_world_vector(arm, [1.0, 0, 0]),
+                                   -layout.base_position(arm) / layout.base_radius, atol=1e-12)
+    env = gym.make("VAFN/MultiArmReach-v1", n_arms=n_arms, frame="base", observe_goal=True, instruction="1")
+    obs, _ = env.reset(seed=0)
+    blocks = obs.reshape(n_arms, 8)
+    np.testing.assert_allclose(blocks[:, :3], blocks[:1, :3].repeat(n_arms, 0), atol=2e-3)  # same home, every arm
+    np.testing.assert_allclose(blocks[0, 5:], layout.to_base_frame(1, layout.default_target(1)), atol=1e-6)
+    assert env.observation_space.contains(obs)
+    assert env.unwrapped.world_kwargs["frame"] == "base"
+    env.close()
+
+
+def test_base_frame_action_is_a_velocity_in_the_arms_frame():
+    """+x in arm k's block moves arm k toward the table centre, for every arm (a world-frame +x would not)."""
+    for arm in (1, 2, 3):
+        env = gym.make("VAFN/MultiArmReach-v1", frame="base", instruction=str(arm))
+        env.reset(seed=0)
+        base = env.unwrapped
+        start = base.arms[arm].ee_position[:2].copy()
+        action = np.zeros(9, dtype=np.float32)
+        action[3 * (arm - 1)] = 1.0
+        for _ in range(5):
+            env.step(action)
+        moved = base.arms[arm].ee_position[:2] - start
+        toward_centre = -start / np.linalg.norm(start)
+        sideways = toward_centre[0] * moved[1] - toward_centre[1] * moved[0]
+        assert moved @ toward_centre > 0.05 and abs(sideways) < 0.02, (arm, moved)
+        env.close()
+
+
+def test_frame_is_checked():
+    with pytest.raises(ValueError, match="frame"):
+        gym.make("VAFN/MultiArmReach-v1", frame="tool")

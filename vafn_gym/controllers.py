@@ -40,7 +40,8 @@ GAIN = 1.0
 class ScriptedController:
     """A deterministic policy with ``predict(obs) -> (action, None)`` like an SB3 model.
 
-    :param homes: rest end-effector point per arm id (1..N); :meth:`for_env` reads them from an env.
+    :param homes: rest end-effector point per arm id (1..N), in the observation's frame; :meth:`for_env` reads them
+        from an env.
     :param observe_goal: observations carry each arm's current target (8 numbers per arm instead of 5).
     :param history: readings per arm block (the env's ``history``; only the newest is used).
     """
@@ -56,10 +57,11 @@ class ScriptedController:
 
     @classmethod
     def for_env(cls, env: gym.Env) -> ScriptedController:
-        """A controller for ``env`` (any wrapper around a :class:`MultiArmEnv`)."""
+        """A controller for ``env`` (any wrapper around a :class:`MultiArmEnv`, in either observation frame)."""
         base = env.unwrapped
-        return cls({arm_id: arm.home for arm_id, arm in base.arms.items()}, observe_goal=base.observe_goal,
-                   history=base.history)
+        # Homes in the frame the observation and action use: the geometry below is the same in every frame.
+        homes = {arm_id: base.observed_point(arm_id, arm.home) for arm_id, arm in base.arms.items()}
+        return cls(homes, observe_goal=base.observe_goal, history=base.history)
 
     def reset(self) -> None:
         """Forget the target estimate (call at every episode start)."""

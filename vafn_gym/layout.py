@@ -15,6 +15,8 @@ MAX_ARMS: int = 8
 MIN_BASE_SPACING: float = 0.35
 #: Two waiting arms' home points must be at least this far apart (metres).
 MIN_HOME_SPACING: float = 0.2
+#: Frames an env can observe positions and take velocities in: the table's ("world") or each arm's own ("base").
+FRAMES: tuple[str, ...] = ("world", "base")
 _PALETTE = (
     (0.9, 0.2, 0.2), (0.2, 0.7, 0.2), (0.2, 0.3, 0.9), (0.9, 0.7, 0.1),
     (0.6, 0.2, 0.8), (0.1, 0.7, 0.8), (0.9, 0.4, 0.6), (0.5, 0.5, 0.5),
@@ -96,6 +98,20 @@ class ArmLayout:
     def base_position(self, arm: int) -> np.ndarray:
         """World position of ``arm``'s base."""
         return self._toward_centre(arm, self.base_radius, 0.0)
+
+    def _heading(self, arm: int) -> np.ndarray:
+        """Rotation from ``arm``'s base frame to the world: its x axis points from the base to the table centre."""
+        heading = self.base_yaw(arm) + np.pi
+        cos, sin = np.cos(heading), np.sin(heading)
+        return np.array([[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]])
+
+    def to_base_frame(self, arm: int, point: np.ndarray) -> np.ndarray:
+        """A world point in ``arm``'s base frame (origin at its base, x toward the table centre, z up)."""
+        return self._heading(arm).T @ (np.asarray(point, dtype=np.float64) - self.base_position(arm))
+
+    def base_to_world_vector(self, arm: int, vector: np.ndarray) -> np.ndarray:
+        """A direction (e.g. a velocity) given in ``arm``'s base frame, expressed in the world frame."""
+        return self._heading(arm) @ np.asarray(vector, dtype=np.float64)
 
     def home_point(self, arm: int) -> np.ndarray:
         """Nominal rest end-effector point of ``arm``, clear of the shared region."""

@@ -2,6 +2,7 @@
 
 from vafn_sb3.callbacks import MetaEvalCallback, RolloutCollisionCallback, SuccessCollisionEvalCallback
 from vafn_sb3.common.adaptation import Adaptable, AdaptedPolicy, collect_support, evaluate_adaptation
+from vafn_sb3.common.agents import shared_actor_for_env
 from vafn_sb3.common.adaptation_curves import AdaptationCurve, aggregate_adaptation, plot_adaptation
 from vafn_sb3.maac import MAAC
 from vafn_sb3.maddpg import MADDPG
@@ -33,6 +34,7 @@ __all__ = [
     "load_pretrained",
     "plot_adaptation",
     "pretrained_info",
+    "shared_actor_for_env",
 ]
 
 from vafn_sb3.common.serialization import atomic_write, load_weights, save_weights  # noqa: E402

@@ -35,7 +35,7 @@ from vafn_gym.constants import (
     WORKSPACE_LOW,
 )
 from vafn_gym.instructions import Instruction
-from vafn_gym.layout import ArmLayout
+from vafn_gym.layout import FRAMES, ArmLayout
 from vafn_gym.robots import RobotSpec, get_robot
 from vafn_gym.sim import BulletSim
 from vafn_gym.task import INACTIVE_ARM_MODES, REWARD_TYPES, TARGET_MODES, InstructionTask, RewardConfig
@@ -71,6 +71,11 @@ class MultiArmEnv(gym.Env):
         ``[position, distance, phase]`` readings (20 numbers instead of 5; the block starts with the current reading, so
         code that reads a block's first numbers is unaffected). A memoryless policy can then estimate where a hidden
         target lies from how its distance changed as it moved. Readings before the episode start repeat the first one.
+    :param frame: "world" (default): positions, targets and velocities in the table's frame; "base": each arm's
+        block gives its position (and target) in that arm's own base frame (origin at its base, x toward the table
+        centre, z up) and its action block is a velocity in that frame. Every arm then sees the same reach problem, so
+        one shared actor without arm ids learns all of them and runs on any number of arms (docs/learning.md, "More
+        arms"). A shared actor's ``neighbours`` summary compares positions across blocks and needs "world".
     :param inactive_arms: "hold": the env returns every non-active arm home and holds it there, those arms' action
         entries are ignored (``info["ignored_arms"]``), and the active arm is held until the others are clear of the
         shared region (``info["gated"]``); "policy": every arm's action counts and inactive arms are rewarded for
@@ -106,6 +111,7 @@ class MultiArmEnv(gym.Env):
         targets: str = "default",
         observe_goal: bool = False,
         history: int = 1,
+        frame: str = "world",
         inactive_arms: str = "hold",
         instruction: Any = None,
         split: str = "train",
@@ -133,6 +139,7 @@ class MultiArmEnv(gym.Env):
         self.targets = check_choice("targets", targets, TARGET_MODES)
         self.observe_goal = check_bool("observe_goal", observe_goal)
         self.history = check_int("history", history, 1, MAX_HISTORY)
+        self.frame = check_choice("frame", frame, FRAMES)
         self.inactive_arms = check_choice("inactive_arms", inactive_arms, INACTIVE_ARM_MODES)
         check_choice("split", split, SPLITS)
         check_choice("reward_type", reward_type, REWARD_TYPES)
@@ -189,7 +196,7 @@ class MultiArmEnv(gym.Env):
         #: The settings that define this env's world, task and reward (a twin env is ``MultiArmEnv(**world_kwargs)``).
         self.world_kwargs: dict[str, Any] = dict(
             layout=layout, robot=self.robot, targets=self.targets, observe_goal=self.observe_goal, history=self.history,
-            inactive_arms=self.inactive_arms, reward_type=reward_type, reward_kwargs=reward.as_dict(),
+            frame=self.frame, inactive_arms=self.inactive_arms, reward_type=reward_type, reward_kwargs=reward.as_dict(),
             terminate_on_collision=self.terminate_on_collision, safety_margin=self.safety_margin, n_substeps=n_substeps,
             split_seed=split_seed,
         )
@@ -207,16 +214,26 @@ class MultiArmEnv(gym.Env):
 
     # --- spaces and observation ---
     def _make_observation_space(self) -> spaces.Box:
-        low = np.concatenate([WORKSPACE_LOW, [0.0, PHASE_WAITING]])
-        high = np.concatenate([WORKSPACE_HIGH, [MAX_DISTANCE, PHASE_COMPLETED]])
+        point_low, point_high = WORKSPACE_LOW.astype(np.float64), WORKSPACE_HIGH.astype(np.float64)
+        if self.frame == "base":  # any workspace point, seen from a base on the circle
+            reach = float(np.linalg.norm(np.maximum(-point_low[:2], point_high[:2]))) + self.layout.base_radius
+            point_low, point_high = np.array([-reach, -reach, point_low[2]]), np.array([reach, reach, point_high[2]])
+        low = np.concatenate([point_low, [0.0, PHASE_WAITING]])
+        high = np.concatenate([point_high, [MAX_DISTANCE, PHASE_COMPLETED]])
         if self.observe_goal:
-            low, high = np.concatenate([low, WORKSPACE_LOW]), np.concatenate([high, WORKSPACE_HIGH])
+            low, high = np.concatenate([low, point_low]), np.concatenate([high, point_high])
         low, high = np.tile(low, self.n_arms * self.history), np.tile(high, self.n_arms * self.history)
         return spaces.Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
 
     def obs_slice(self, arm: int) -> slice:
         """Slice of the observation that belongs to ``arm`` (1-based)."""
         return self.layout.block_slice(arm, self.obs_per_arm)
+
+    def observed_point(self, arm: int, point: np.ndarray) -> np.ndarray:
+        """A world point as ``arm``'s observation block gives it (unchanged in the "world" frame)."""
+        if self.frame == "base":
+            return self.layout.to_base_frame(arm, point)
+        return np.asarray(point, dtype=np.float64)
 
     def _positions(self) -> dict[int, np.ndarray]:
         return {arm_id: arm.ee_position for arm_id, arm in self.arms.items()}
@@ -225,11 +242,11 @@ class MultiArmEnv(gym.Env):
         """This step's ``(n_arms, reading_size)`` readings: position, distance, phase (and goal) of every arm."""
         reading = np.zeros((self.n_arms, self.reading_size), dtype=np.float64)
         for row, (arm, distance) in enumerate(zip(self.layout.arm_ids, distances)):
-            reading[row, POS_SLICE] = positions[arm]
+            reading[row, POS_SLICE] = self.observed_point(arm, positions[arm])
             reading[row, DIST_INDEX] = distance
             reading[row, PHASE_INDEX] = self.task.phase(arm)
             if self.observe_goal:
-                reading[row, GOAL_SLICE] = self.task.current_target(arm)
+                reading[row, GOAL_SLICE] = self.observed_point(arm, self.task.current_target(arm))
         return reading
 
     def _observation(
@@ -352,7 +369,10 @@ class MultiArmEnv(gym.Env):
             elif self.gated:
                 arm.command_velocity(np.zeros(3), dt, positions[arm_id])
             else:
-                arm.command_velocity(action[self.layout.action_slice(arm_id)] * V_MAX, dt, positions[arm_id])
+                velocity = action[self.layout.action_slice(arm_id)] * V_MAX
+                if self.frame == "base":
+                    velocity = self.layout.base_to_world_vector(arm_id, velocity)
+                arm.command_velocity(velocity, dt, positions[arm_id])
         self.sim.step()
 
     def _arm_contact(self) -> bool:

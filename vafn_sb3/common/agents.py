@@ -19,8 +19,10 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+import gymnasium as gym
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.torch_layers import FlattenExtractor
 from stable_baselines3.sac.policies import Actor as SACActor
 from stable_baselines3.sac.policies import SACPolicy
@@ -412,6 +414,32 @@ class AgentLayoutPolicyMixin:
         data.update(n_agents=layout.n_agents, obs_per_agent=layout.obs_per_agent,
                     action_per_agent=layout.action_per_agent, agent_ids=self.agent_ids, neighbours=self.neighbours)
         return data
+
+
+def shared_actor_for_env(model: Any, env: gym.Env) -> BasePolicy:
+    """``model``'s policy rebuilt for ``env``'s number of agents, with the trained shared actor (zero-shot transfer).
+
+    The actor must have been trained without one-hot ids (``agent_ids=False``) on blocks of the same size as
+    ``env``'s; its weights are copied unchanged, the critics are fresh (untrained: evaluate, do not fine-tune, the
+    result). Returns an SB3 policy in evaluation mode, with SB3's ``predict``.
+
+    :param model: an SB3 model or policy with a per-agent actor (SAC, MTSAC, MAML-SAC, MADDPG, MAAC).
+    :param env: the env to run on (its spaces decide the number of agents).
+    """
+    policy = getattr(model, "policy", model)
+    if not isinstance(policy, AgentLayoutPolicyMixin) or not isinstance(getattr(policy, "actor", None), nn.Module):
+        raise ValueError(f"{type(policy).__name__} has no shared per-agent actor; only per-agent policies (e.g. "
+                         "SharedAgentPolicy) run on another number of agents")
+    if policy.agent_ids:
+        raise ValueError(f"this actor appends one-hot ids of {policy.agent_layout.n_agents} agents, so it only runs on "
+                         f"{policy.agent_layout.n_agents}; train it with policy_kwargs agent_ids=False to transfer it")
+    data = policy._get_constructor_parameters()
+    # The block sizes stay: from_spaces raises ValueError naming them when env's observation does not split into them.
+    data.update(observation_space=env.observation_space, action_space=env.action_space, n_agents=None)
+    transferred = type(policy)(**data).to(policy.device)
+    transferred.actor.load_state_dict(policy.actor.state_dict())
+    transferred.set_training_mode(False)
+    return transferred
 
 
 class SharedAgentSACPolicy(AgentLayoutPolicyMixin, SACPolicy):
