@@ -189,6 +189,13 @@ def test_base_frame_action_is_a_velocity_in_the_arms_frame():
         env.close()
 
 
+def test_base_frame_spaces_match_across_robots_and_arm_counts():
+    """A base-frame model saved with one robot loads with another's env (SB3 compares the spaces' bounds too)."""
+    spaces = [gym.make("VAFN/MultiArmReach-v1", robot=robot, frame="base").observation_space
+              for robot in ("kuka", "panda", "xarm")]
+    assert spaces[0] == spaces[1] == spaces[2]
+
+
 def test_frame_is_checked():
     with pytest.raises(ValueError, match="frame"):
         gym.make("VAFN/MultiArmReach-v1", frame="tool")

@@ -215,8 +215,11 @@ class MultiArmEnv(gym.Env):
     # --- spaces and observation ---
     def _make_observation_space(self) -> spaces.Box:
         point_low, point_high = WORKSPACE_LOW.astype(np.float64), WORKSPACE_HIGH.astype(np.float64)
-        if self.frame == "base":  # any workspace point, seen from a base on the circle
-            reach = float(np.linalg.norm(np.maximum(-point_low[:2], point_high[:2]))) + self.layout.base_radius
+        if self.frame == "base":
+            # Any workspace point seen from a base on the circle; the same bounds for every layout whose bases stand
+            # within the workspace's radius, so a model saved on one robot loads with an env of another.
+            radius = float(np.linalg.norm(np.maximum(-point_low[:2], point_high[:2])))
+            reach = radius + max(radius, self.layout.base_radius)
             point_low, point_high = np.array([-reach, -reach, point_low[2]]), np.array([reach, reach, point_high[2]])
         low = np.concatenate([point_low, [0.0, PHASE_WAITING]])
         high = np.concatenate([point_high, [MAX_DISTANCE, PHASE_COMPLETED]])
