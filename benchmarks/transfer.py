@@ -19,10 +19,12 @@ import json
 import shlex
 import sys
 from pathlib import Path
+from typing import Any
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
+import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
@@ -37,7 +39,7 @@ SETTINGS = (
 METRICS = ("success", "collision", "episode_steps")
 
 
-def policy_for(model, env) -> object:
+def policy_for(model: Any, env: gym.Env) -> Any:
     """``model`` itself where ``env`` has its spaces, else its shared actor rebuilt for ``env``'s arm count."""
     if model.observation_space.shape == env.observation_space.shape:
         return model
