@@ -159,7 +159,7 @@ def calibrate_fusion(sets: Sequence[CalibrationSet], grid: Sequence[float] = IMA
                            for a, i, y in zip(s.audio, s.image, s.labels)]))
             for s in sets]
     single = {m: [s.accuracy(m) for s in sets] for m in MODALITIES}
-    best_single = [max(a, i) for a, i in zip(single["audio"], single["image"])]
+    best_single = [max(accuracies) for accuracies in zip(*single.values())]
     worst_margin = {w: min(a - b for a, b in zip(accuracy[w], best_single)) for w in grid}
     best = max(grid, key=lambda w: (round(worst_margin[w], 6), round(float(np.mean(accuracy[w])), 6),
                                     -abs(np.log(w))))
