@@ -30,6 +30,7 @@ import torch  # noqa: E402
 
 from vafn_gym import InstructionBenchmark, episode_rates  # noqa: E402
 from vafn_gym.benchmarks import confidence_half_width  # noqa: E402
+from vafn_gym.constants import ACTION_PER_ARM  # noqa: E402
 from vafn_sb3 import load_pretrained, shared_actor_for_env  # noqa: E402
 from zoo.registry import require_algorithm  # noqa: E402
 
@@ -76,9 +77,9 @@ def main() -> None:
             raise SystemExit(f"no model matches {args.models!r}")
         models = [require_algorithm(args.algo).load(path, device="cpu") for path in paths]
         source = f"`{args.algo}`, {len(paths)} seed(s): " + ", ".join(Path(p).name for p in paths)
-    trained_arms = models[0].action_space.shape[0] // 3
+    trained_arms = models[0].action_space.shape[0] // ACTION_PER_ARM
     command = shlex.join(["python", "benchmarks/transfer.py", *sys.argv[1:]])
-    lines = [f"# Zero-shot transfer of {source} (trained on {trained_arms} KUKA arms)", "",
+    lines = [f"# Zero-shot transfer of {source} (trained on {trained_arms} arms)", "",
              f"`{command}`; held-out test instructions, lengths 1-10, `VAFN/MultiArmReach-v1`, default targets, "
              f"inactive arms held, env kwargs {json.dumps(args.env_kwargs)}; mean ± 95 % CI over seeds.", "",
              "| robot | arms | success | collision rate | mean steps |", "|---|---|---|---|---|"]
