@@ -479,3 +479,15 @@ def test_train_only_one_modality_freezes_everything_else(train_only):
     assert trainable == own
     assert all(p.requires_grad == (id(p) in own) for p in model.parameters())
     assert len(trainable_parameters(InstructionModel(), "all")) == len(list(model.parameters()))
+
+
+def test_vocal_tract_warp_moves_formants_and_keeps_identity():
+    from vafn_media.batching import warp_vocal_tract
+
+    features = np.random.default_rng(0).normal(size=(N_MELS, 30)).astype(np.float32)
+    assert np.allclose(warp_vocal_tract(features, 1.0), features, atol=1e-5)
+    peak = np.zeros((N_MELS, 1), np.float32)
+    peak[20] = 1.0
+    assert np.argmax(warp_vocal_tract(peak, 1.15)) > 20 > np.argmax(warp_vocal_tract(peak, 0.87))
+    warped = warp_vocal_tract(features, 0.9)
+    assert warped.shape == features.shape and warped.dtype == features.dtype

@@ -318,3 +318,29 @@ def test_cli_empty_code_is_the_empty_instruction():
     done = _cli("--code", "", "--json")
     assert done.returncode == 0, done.stderr
     assert '"instruction": []' in done.stdout
+
+
+def test_speech_checkpoint_comparison_and_error_breakdown(generator):
+    import importlib.util
+    from pathlib import Path
+
+    from vafn_media.evaluation import speech_items
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "speech_checkpoints.py"
+    spec = importlib.util.spec_from_file_location("speech_checkpoints", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    items = speech_items("espeak", 3, module.SELECTION_SEED)
+    assert all(item.voice and 0 <= item.template for item in items)
+    lines = module.error_lines(generator.transcribe, items, "espeak")
+    assert [line.split(":")[0] for line in lines] == ["- espeak, clean, per phrasing (shown for [1, 2])",
+                                                      "- espeak, clean, per voice", "- espeak, clean, digits dropped"]
+
+    class Deaf:  # reads every clip as the empty instruction: every digit is dropped, every item wrong
+        def __call__(self, audio):
+            return type("Result", (), {"instruction": type("I", (), {"arms": ()})()})()
+
+    dropped = module.error_lines(Deaf(), items, "espeak")
+    assert " 0 % of" in dropped[1] and "100 %" not in dropped[1]
+    counts = {arm: sum(item.arms.count(arm) for item in items) for arm in (1, 2, 3)}
+    assert f"dropped: { {arm: n for arm, n in counts.items() if n} }, inserted: {{}}" in dropped[2]

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import lru_cache
 
 import numpy as np
 import torch
 
-from vafn_media.constants import IMAGE_HEIGHT, MAX_IMAGE_WIDTH, MIN_IMAGE_WIDTH
+from vafn_media.constants import (F_MAX, F_MIN, IMAGE_HEIGHT, MAX_IMAGE_WIDTH, MIN_IMAGE_WIDTH, N_MELS,
+                                  VTLP_PROBABILITY, VTLP_RANGE)
 from vafn_media.dataset import INK_LEVELS, TrainingData
 
 #: Augmentation settings (training only): probability of a degraded cached copy instead of the clean utterance.
@@ -42,6 +44,26 @@ def _stretch(strip: np.ndarray, factor: float) -> np.ndarray:
     return cv2.resize(strip, (width, strip.shape[0]), interpolation=cv2.INTER_AREA)
 
 
+@lru_cache(maxsize=1)
+def _mel_centres() -> np.ndarray:
+    import librosa
+
+    return librosa.mel_frequencies(N_MELS + 2, fmin=F_MIN, fmax=F_MAX)[1:-1]
+
+
+def warp_vocal_tract(features: np.ndarray, factor: float) -> np.ndarray:
+    """Vocal-tract-length perturbation of (N_MELS, T) log-mel features: band k takes the value at ``f_k / factor``.
+
+    :param features: log-mel features, bands on axis 0.
+    :param factor: formant scale (> 1: higher formants, like a shorter vocal tract).
+    """
+    centres = _mel_centres()
+    source = np.interp(centres / factor, centres, np.arange(N_MELS))  # fractional band index, edges clamped
+    low = np.minimum(source.astype(np.int64), N_MELS - 2)
+    weight = (source - low)[:, None].astype(features.dtype)
+    return features[low] * (1 - weight) + features[low + 1] * weight
+
+
 def pad_features(features: Sequence[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
     """Right-pad (N_MELS, T_i) feature arrays into (B, N_MELS, T_max) plus frame counts.
 
@@ -70,7 +92,8 @@ def bucketed_batches(data: TrainingData, batch_size: int, rng: np.random.Generat
 
 def make_batch(data: TrainingData, indices: np.ndarray, rng: np.random.Generator | None,
                corrupted: bool = False, camera: Sequence[Sequence[np.ndarray]] | None = None,
-               camera_probability: float = CAMERA_PROBABILITY) -> dict[str, torch.Tensor]:
+               camera_probability: float = CAMERA_PROBABILITY,
+               vtlp_probability: float = VTLP_PROBABILITY) -> dict[str, torch.Tensor]:
     """Build a training (``rng`` given: augmented) or evaluation (``rng`` None: clean, or ``corrupted``) batch.
 
     :param data: cached items.
@@ -80,6 +103,7 @@ def make_batch(data: TrainingData, indices: np.ndarray, rng: np.random.Generator
     :param camera: training only: per copy, a camera-photo strip of every item (``camera[k][i]``); with probability
         ``camera_probability`` an item's image is one of them instead of its rendered (or Cutout) strip.
     :param camera_probability: see ``camera``.
+    :param vtlp_probability: training only: probability of a vocal-tract-length perturbation of the audio features.
     """
     audio, strips = [], []
     for i in indices:
@@ -94,6 +118,8 @@ def make_batch(data: TrainingData, indices: np.ndarray, rng: np.random.Generator
         if rng is not None and camera is not None and rng.random() < camera_probability:
             strip = camera[int(rng.integers(len(camera)))][i].astype(np.float32) / INK_LEVELS
         if rng is not None:
+            if rng.random() < vtlp_probability:
+                features = warp_vocal_tract(features, rng.uniform(*VTLP_RANGE))
             if rng.random() < SPEC_MASK_PROBABILITY:
                 features = features.copy()
                 f0 = int(rng.integers(0, features.shape[0] - MAX_FREQ_MASK))

@@ -32,6 +32,10 @@ SILENCE_DBFS: float = -55.0
 #: Fraction of samples at full scale above which a clip is reported as clipped.
 CLIP_LEVEL: float = 0.999
 CLIP_FRACTION: float = 0.01
+#: Vocal-tract-length perturbation of training features: probability, and range of the factor scaling every formant
+#: (a speaker with a shorter vocal tract has higher formants).
+VTLP_PROBABILITY: float = 0.8
+VTLP_RANGE: tuple[float, float] = (0.85, 1.15)
 
 # --- images ---
 #: Height of the canonical strip every image is resized to, and the width of one digit cell when rendering.

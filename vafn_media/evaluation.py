@@ -126,7 +126,8 @@ def edit_distance(a: tuple[int, ...], b: tuple[int, ...]) -> int:
 
 @dataclass
 class SpeechItem:
-    """One spoken instruction of a robustness set: label, clean waveform and rate, a fast rendition, an image."""
+    """One spoken instruction of a robustness set: label, clean waveform and rate, a fast rendition, an image, and
+    the phrasing template and voice that said it (for error analysis)."""
 
     arms: tuple[int, ...]
     waveform: np.ndarray
@@ -134,6 +135,8 @@ class SpeechItem:
     fast: np.ndarray
     fast_rate: int
     image: np.ndarray
+    template: int
+    voice: str
 
 
 def speech_items(engine: str, count: int, seed: int, heldout: bool = True) -> list[SpeechItem]:
@@ -163,12 +166,13 @@ def speech_items(engine: str, count: int, seed: int, heldout: bool = True) -> li
             voice = sample_voice(rng, heldout=heldout)
             clean = speak(arms, voice, template)
             fast = speak(arms, replace(voice, rate=min(450, int(voice.rate * 1.4))), template)
-            items.append(SpeechItem(arms, clean, ESPEAK_SAMPLE_RATE, fast, ESPEAK_SAMPLE_RATE, image))
+            items.append(SpeechItem(arms, clean, ESPEAK_SAMPLE_RATE, fast, ESPEAK_SAMPLE_RATE, image, template,
+                                    voice.full_name))
         else:
             voice = FLITE_VOICES[i % len(FLITE_VOICES)]
             clean, rate = speak_with(engine, arms, voice, template)
             fast, fast_rate = speak_with(engine, arms, voice, template, stretch=0.7)
-            items.append(SpeechItem(arms, clean, rate, fast, fast_rate, image))
+            items.append(SpeechItem(arms, clean, rate, fast, fast_rate, image, template, voice))
     return items
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from vafn_gym.files import atomic_write
-from vafn_media.constants import BLANK, MODALITIES
+from vafn_media.constants import BLANK, MODALITIES, VTLP_PROBABILITY, VTLP_RANGE
 
 #: Default paths of the packaged checkpoint (weights + JSON metadata).
 CHECKPOINT_DIR = Path(__file__).parent / "checkpoints"
@@ -165,6 +165,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--camera-probability", type=float, default=0.5,
                         help="share of training images that are camera photos of cards (vafn_media.camera); > 0 also "
                              "re-renders every item's strips with the current image code (0: cached strips only)")
+    parser.add_argument("--vtlp-probability", type=float, default=VTLP_PROBABILITY,
+                        help="share of training utterances whose formants are scaled by a random factor in "
+                             f"{VTLP_RANGE} (vocal-tract-length perturbation, for voices the data has not got)")
     parser.add_argument("--train-only", choices=("all", *MODALITIES), default="all",
                         help="'image' or 'audio': update only that modality's encoder and adapter; the other path, "
                              "the shared projection and the decoder stay frozen, so the other modality's readings "
@@ -223,7 +226,8 @@ def main(argv=None) -> dict:
             model.encoders[modality].eval()
         if not queue:
             queue = bucketed_batches(train, args.batch_size, rng)
-        batch = make_batch(train, queue.pop(), rng, camera=camera, camera_probability=args.camera_probability)
+        batch = make_batch(train, queue.pop(), rng, camera=camera, camera_probability=args.camera_probability,
+                           vtlp_probability=args.vtlp_probability)
         targets, target_lengths = batch["targets"], batch["target_lengths"]
         flat_targets = torch.cat([targets[b, : int(target_lengths[b])] for b in range(len(targets))])
         losses, outputs = {}, {}
