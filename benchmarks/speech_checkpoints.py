@@ -29,7 +29,7 @@ def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--items", type=int, default=200, help="instructions per engine (lengths 1-10)")
     parser.add_argument("--checkpoints", nargs="+", default=["packaged"],
-                        help="checkpoint files (.pt with its .json beside it), or 'packaged'")
+                        help="checkpoint files (.pt with its .json beside it; named by their folder), or 'packaged'")
     parser.add_argument("--errors", action="store_true", help="also break clean-speech errors down (see above)")
     parser.add_argument("--out", type=Path, default=None, help="also write the markdown table here")
     return parser.parse_args()
@@ -89,15 +89,16 @@ def main() -> None:
     errors: list[str] = []
     for checkpoint in args.checkpoints:
         generator = InstructionGenerator.load() if checkpoint == "packaged" else InstructionGenerator.load(checkpoint)
+        name = checkpoint if checkpoint == "packaged" else Path(checkpoint).parent.name  # the run's folder
         for engine in engines:
             exact = [robust_cell(generator.transcribe, items[engine], condition, SELECTION_SEED)["exact"]
-                     for condition in tqdm(CONDITIONS, desc=f"{Path(checkpoint).parent.name or checkpoint}: {engine}",
+                     for condition in tqdm(CONDITIONS, desc=f"{name}: {engine}",
                                            unit="condition", leave=False)]
             cells = " | ".join(f"{value:.1f}" for value in exact)
-            lines.append(f"| {checkpoint} | {engine} | {cells} | {np.mean(exact[1:]):.1f} |")
+            lines.append(f"| {name} | {engine} | {cells} | {np.mean(exact[1:]):.1f} |")
             print(lines[-1], flush=True)
             if args.errors:
-                errors += [f"{checkpoint}:"] + error_lines(generator.transcribe, items[engine], engine)
+                errors += [f"{name}:"] + error_lines(generator.transcribe, items[engine], engine)
     if errors:
         lines += ["", "Where clean speech is misread:", ""] + errors
         print("\n".join(errors))
