@@ -252,8 +252,8 @@ def main(argv=None) -> dict:
             writer.add_scalar(f"loss/{name}", float(value.detach()), step)
         writer.add_scalar("loss/total", float(total.detach()), step)
         writer.add_scalar("train/aligned_tokens", aligned, step)
-        bar.set_postfix(audio=f"{float(losses['ctc_audio']):.3f}", image=f"{float(losses['ctc_image']):.3f}",
-                        nce=f"{float(infonce):.2f}")
+        bar.set_postfix(audio=f"{losses['ctc_audio'].item():.3f}", image=f"{losses['ctc_image'].item():.3f}",
+                        nce=f"{infonce.item():.2f}")
         if step % args.eval_every == 0 or step == args.steps:
             metrics = {split: evaluate(model, data) for split, data in validation.items()}
             for split, accuracies in metrics.items():
