@@ -7,13 +7,14 @@ Engines: espeak-ng's held-out voices, and every evaluation engine installed (fli
 which digits are dropped and inserted.
 
     OMP_NUM_THREADS=1 python benchmarks/speech_checkpoints.py --items 200 --checkpoints packaged a.pt b.pt \
-        --out results/media/speech_checkpoints.md
+        --out results/speech_checkpoints.md
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -35,7 +36,7 @@ def parse_args() -> argparse.Namespace:
     return parser.parse_args()
 
 
-def error_lines(transcribe, items: list, engine: str) -> list[str]:
+def error_lines(transcribe: Callable[..., object], items: list, engine: str) -> list[str]:
     """Markdown lines: clean-speech exact % per phrasing and per voice, and the digits dropped / inserted."""
     import difflib
     from collections import Counter, defaultdict

@@ -323,6 +323,7 @@ def test_cli_empty_code_is_the_empty_instruction():
 def test_speech_checkpoint_comparison_and_error_breakdown(generator):
     import importlib.util
     from pathlib import Path
+    from types import SimpleNamespace
 
     from vafn_media.evaluation import speech_items
 
@@ -336,11 +337,10 @@ def test_speech_checkpoint_comparison_and_error_breakdown(generator):
     assert [line.split(":")[0] for line in lines] == ["- espeak, clean, per phrasing (shown for [1, 2])",
                                                       "- espeak, clean, per voice", "- espeak, clean, digits dropped"]
 
-    class Deaf:  # reads every clip as the empty instruction: every digit is dropped, every item wrong
-        def __call__(self, audio):
-            return type("Result", (), {"instruction": type("I", (), {"arms": ()})()})()
+    def deaf(audio):  # reads every clip as the empty instruction: every digit is dropped, every item wrong
+        return SimpleNamespace(instruction=SimpleNamespace(arms=()))
 
-    dropped = module.error_lines(Deaf(), items, "espeak")
+    dropped = module.error_lines(deaf, items, "espeak")
     assert " 0 % of" in dropped[1] and "100 %" not in dropped[1]
     counts = {arm: sum(item.arms.count(arm) for item in items) for arm in (1, 2, 3)}
     assert f"dropped: { {arm: n for arm, n in counts.items() if n} }, inserted: {{}}" in dropped[2]
