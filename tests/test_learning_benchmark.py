@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -11,21 +10,14 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def load_learning_module():
-    spec = importlib.util.spec_from_file_location("learning_benchmark", ROOT / "benchmarks" / "learning.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def fake_rows(seed: int) -> list[dict]:
     return [{"seed": seed, "timesteps": 10, "n_tasks": 2, "wall_s": 1.0, "cpu_s": 1.0, "success": 0.5,
              "collision": 0.0, "episode_steps": 50.0, "waypoint_fraction": 0.5}]
 
 
-def test_parallel_appends_keep_every_seed(tmp_path, monkeypatch):
+def test_parallel_appends_keep_every_seed(tmp_path, monkeypatch, load_benchmark):
     """Process A (seed 0) starts; B (seed 1) finishes while A trains; A's write must keep B's seed."""
-    learning = load_learning_module()
+    learning = load_benchmark("learning")
     argv = [str(ROOT / "benchmarks" / "learning.py"), "--out", str(tmp_path), "--append", "--n-test", "2"]
 
     def other_process_finishes():
@@ -47,9 +39,9 @@ def test_parallel_appends_keep_every_seed(tmp_path, monkeypatch):
     assert not list(tmp_path.glob(".*")), "no partial file left behind"
 
 
-def test_recurrent_baseline_trains_and_is_evaluated_on_the_hidden_family(tmp_path, monkeypatch):
+def test_recurrent_baseline_trains_and_is_evaluated_on_the_hidden_family(tmp_path, monkeypatch, load_benchmark):
     """sb3-contrib's RecurrentPPO (zoo key ppo_lstm) runs through the benchmark from hyperparams/ppo_lstm.yml."""
-    learning = load_learning_module()
+    learning = load_benchmark("learning")
     monkeypatch.setattr(sys, "argv", [
         str(ROOT / "benchmarks" / "learning.py"), "--algo", "ppo_lstm", "--env", "VAFN/ThreeArmReachHidden-v1",
         "--seeds", "0", "--steps", "64", "--eval-every", "64", "--n-eval", "1", "--n-test", "1",

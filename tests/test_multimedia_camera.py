@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
 import os
-from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -16,8 +14,6 @@ pytest.importorskip("PIL")
 pytest.importorskip("matplotlib")
 
 from vafn_media import camera  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def _card(seed: int = 0) -> np.ndarray:
@@ -188,13 +184,11 @@ def test_image_cache_and_camera_batches(tmp_path):
 
 
 # --- benchmark -----------------------------------------------------------------------------------------------------
-def test_benchmark_camera_section_runs_on_a_tiny_sample():
+def test_benchmark_camera_section_runs_on_a_tiny_sample(load_benchmark):
     pytest.importorskip("torch")
     from vafn_media import InstructionGenerator
 
-    spec = importlib.util.spec_from_file_location("instruction_table", ROOT / "benchmarks" / "instruction_table.py")
-    table = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(table)
+    table = load_benchmark("instruction_table")
     lines, rows = table.camera_section(InstructionGenerator.load(), 2)
     conditions = {row[1] for row in rows[1:]}
     assert set(camera.CAMERA_CONDITIONS) <= conditions

@@ -320,17 +320,12 @@ def test_cli_empty_code_is_the_empty_instruction():
     assert '"instruction": []' in done.stdout
 
 
-def test_speech_checkpoint_comparison_and_error_breakdown(generator):
-    import importlib.util
-    from pathlib import Path
+def test_speech_checkpoint_comparison_and_error_breakdown(generator, load_benchmark):
     from types import SimpleNamespace
 
     from vafn_media.evaluation import speech_items
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "speech_checkpoints.py"
-    spec = importlib.util.spec_from_file_location("speech_checkpoints", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_benchmark("speech_checkpoints")
     items = speech_items("espeak", 3, module.SELECTION_SEED)
     assert all(item.voice and 0 <= item.template for item in items)
     lines = module.error_lines(generator.transcribe, items, "espeak")
