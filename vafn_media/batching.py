@@ -120,8 +120,7 @@ def make_batch(data: TrainingData, indices: np.ndarray, rng: np.random.Generator
         if rng is not None:
             if rng.random() < vtlp_probability:
                 features = warp_vocal_tract(features, rng.uniform(*VTLP_RANGE))
-            if rng.random() < SPEC_MASK_PROBABILITY:
-                features = features.copy()
+            if rng.random() < SPEC_MASK_PROBABILITY:  # in place: ``features`` is this batch's own float32 copy
                 f0 = int(rng.integers(0, features.shape[0] - MAX_FREQ_MASK))
                 features[f0:f0 + int(rng.integers(1, MAX_FREQ_MASK + 1))] = 0.0
                 t0 = int(rng.integers(0, max(1, features.shape[1] - MAX_TIME_MASK)))
