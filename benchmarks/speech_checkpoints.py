@@ -91,6 +91,8 @@ def main() -> None:
     for checkpoint in args.checkpoints:
         generator = InstructionGenerator.load() if checkpoint == "packaged" else InstructionGenerator.load(checkpoint)
         name = checkpoint if checkpoint == "packaged" else Path(checkpoint).parent.name  # the run's folder
+        if args.errors:
+            errors.append(f"{name}:")
         for engine in engines:
             exact = [robust_cell(generator.transcribe, items[engine], condition, SELECTION_SEED)["exact"]
                      for condition in tqdm(CONDITIONS, desc=f"{name}: {engine}",
@@ -99,7 +101,7 @@ def main() -> None:
             lines.append(f"| {name} | {engine} | {cells} | {np.mean(exact[1:]):.1f} |")
             print(lines[-1], flush=True)
             if args.errors:
-                errors += [f"{name}:"] + error_lines(generator.transcribe, items[engine], engine)
+                errors += error_lines(generator.transcribe, items[engine], engine)
     if errors:
         lines += ["", "Where clean speech is misread:", ""] + errors
         print("\n".join(errors))
