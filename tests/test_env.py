@@ -208,6 +208,19 @@ def test_goal_visible_observes_each_arms_current_target():
     env.close()
 
 
+def test_waiting_goal_home_points_a_waiting_arms_distance_and_goal_home():
+    env = gym.make("VAFN/ThreeArmReachGoal-v1", instruction="2,1", waiting_goal="home")
+    obs, info = env.reset(seed=3)
+    blocks, arms = obs.reshape(3, 8), env.unwrapped.arms
+    assert np.allclose(blocks[1, GOAL_SLICE], info["instruction"].targets[0], atol=1e-6)  # arm 2, executing
+    for row, arm in ((0, 1), (2, 3)):  # arm 1 waiting, arm 3 completed
+        assert np.allclose(blocks[row, GOAL_SLICE], arms[arm].home, atol=1e-6)
+        assert np.isclose(blocks[row, 3], np.linalg.norm(blocks[row, :3] - arms[arm].home), atol=1e-6)
+    assert not np.isclose(blocks[0, 3], np.linalg.norm(blocks[0, :3] - info["instruction"].targets[1]))
+    assert env.unwrapped.world_kwargs["waiting_goal"] == "home"
+    env.close()
+
+
 def test_history_blocks_hold_each_arms_recent_readings_newest_first():
     plain, history = gym.make(HIDDEN), gym.make(HIDDEN, history=3)
     assert history.observation_space.shape == (3 * 5 * 3,)
@@ -473,6 +486,7 @@ def test_safety_margin_penalises_proximity_without_counting_a_collision():
         (STREAM, dict(auto_dequeue="no"), "auto_dequeue"),
         (MULTI, dict(max_length=11), "max_length"),
         (REACH, dict(history=0), "history"),
+        (REACH, dict(waiting_goal="next"), "waiting_goal"),
         (REACH, dict(history=2.5), "history"),
         (REACH, dict(success_tolerance=0.0), "success_tolerance"),
         (REACH, dict(success_tolerance=0.5), "success_tolerance"),

@@ -19,7 +19,7 @@ from vafn_gym.queue import (
     ScheduledArrivals,
 )
 from vafn_gym.robots import KUKA_IIWA, PANDA, ROBOTS, XARM6, RobotSpec
-from vafn_gym.task import INACTIVE_ARM_MODES, TARGET_MODES, InstructionTask, RewardConfig
+from vafn_gym.task import INACTIVE_ARM_MODES, TARGET_MODES, WAITING_GOALS, InstructionTask, RewardConfig
 from vafn_gym.tasks import SPLITS, TaskSampler
 
 #: ID -> (entry point, default kwargs). docs/environments.md documents each one.
@@ -42,6 +42,7 @@ for _env_id, (_entry_point, _kwargs) in _REGISTRY.items():
 __all__ = [
     "ENV_IDS",
     "INACTIVE_ARM_MODES",
+    "WAITING_GOALS",
     "KUKA_IIWA",
     "PANDA",
     "ROBOTS",

@@ -20,6 +20,8 @@ from vafn_gym.layout import ArmLayout
 TARGET_MODES = ("default", "per_arm", "per_waypoint")
 #: Who moves the arms that are not executing a waypoint: the env's low-level controller, or the policy.
 INACTIVE_ARM_MODES = ("hold", "policy")
+#: What a waiting arm's observed distance (and goal) refers to: its next target, or its home point.
+WAITING_GOALS = ("target", "home")
 REWARD_TYPES = ("dense", "sparse")
 
 
@@ -104,12 +106,14 @@ class InstructionTask:
     :param reward: the dense-reward weights.
     :param homes: rest point per arm (default: the layout's nominal home points; the env passes the measured ones).
     :param success_tolerance: distance (m) at which the active arm has reached its waypoint.
+    :param waiting_goal: "target": a waiting arm's observed distance is to its next waypoint's target; "home": to its
+        home point, where the env (or the home-progress reward) sends it until its turn.
     """
 
     def __init__(
         self, layout: ArmLayout, targets: str = "default", inactive_arms: str = "hold", reward_type: str = "dense",
         reward: RewardConfig | None = None, homes: Mapping[int, np.ndarray] | None = None,
-        success_tolerance: float = SUCCESS_TOLERANCE,
+        success_tolerance: float = SUCCESS_TOLERANCE, waiting_goal: str = "target",
     ) -> None:
         self.layout = layout
         self.targets = targets
@@ -118,6 +122,7 @@ class InstructionTask:
         self.reward_config = reward or RewardConfig()
         self.homes = dict(homes) if homes is not None else {arm: layout.home_point(arm) for arm in layout.arm_ids}
         self.success_tolerance = success_tolerance
+        self.waiting_goal = waiting_goal
         self.instruction = Instruction()
         self.waypoint_index = 0
         self.steps = 0
@@ -159,6 +164,12 @@ class InstructionTask:
                 return self.instruction[index].target_array
         return self.homes[arm]
 
+    def goal(self, arm: int) -> np.ndarray:
+        """The point ``arm``'s observed distance (and goal) refers to: :meth:`current_target`, or home while waiting."""
+        if self.waiting_goal == "home" and arm != self.active_arm:
+            return self.homes[arm]
+        return self.current_target(arm)
+
     def phase(self, arm: int) -> int:
         """Phase flag: 1 executing, 0 waiting for a later waypoint, 2 completed (no waypoint left)."""
         if arm == self.active_arm:
@@ -168,8 +179,8 @@ class InstructionTask:
         return PHASE_COMPLETED
 
     def distances(self, positions: Mapping[int, np.ndarray]) -> np.ndarray:
-        """Distance of every arm (in id order) to its current target."""
-        return np.array([np.linalg.norm(positions[arm] - self.current_target(arm)) for arm in self.layout.arm_ids])
+        """Distance of every arm (in id order) to its :meth:`goal`."""
+        return np.array([np.linalg.norm(positions[arm] - self.goal(arm)) for arm in self.layout.arm_ids])
 
     # --- one step ---
     def step(

@@ -38,7 +38,9 @@ from vafn_gym.instructions import Instruction
 from vafn_gym.layout import FRAMES, ArmLayout
 from vafn_gym.robots import RobotSpec, get_robot
 from vafn_gym.sim import BulletSim
-from vafn_gym.task import INACTIVE_ARM_MODES, REWARD_TYPES, TARGET_MODES, InstructionTask, RewardConfig
+from vafn_gym.task import (
+    INACTIVE_ARM_MODES, REWARD_TYPES, TARGET_MODES, WAITING_GOALS, InstructionTask, RewardConfig,
+)
 from vafn_gym.tasks import SPLITS, TaskSampler
 
 #: Episode budget when no max_steps is given: BASE + PER_WAYPOINT * len(instruction) steps.
@@ -80,6 +82,9 @@ class MultiArmEnv(gym.Env):
         entries are ignored (``info["ignored_arms"]``), and the active arm is held until the others are clear of the
         shared region (``info["gated"]``); "policy": every arm's action counts and inactive arms are rewarded for
         progress toward home.
+    :param waiting_goal: what a waiting arm (phase 0) observes its distance (and goal) to: "target" (default), its
+        next waypoint's target; "home", its home point, where the env or the home-progress reward sends it until its
+        turn. The active arm always observes its target, a completed arm its home.
     :param instruction: a fixed instruction for every episode (anything :meth:`Instruction.coerce` accepts); ``None``
         samples one per episode from the task sampler.
     :param split: which split of the task distribution to sample from ("train", "validation", "test").
@@ -113,6 +118,7 @@ class MultiArmEnv(gym.Env):
         history: int = 1,
         frame: str = "world",
         inactive_arms: str = "hold",
+        waiting_goal: str = "target",
         instruction: Any = None,
         split: str = "train",
         min_length: int = 1,
@@ -141,6 +147,7 @@ class MultiArmEnv(gym.Env):
         self.history = check_int("history", history, 1, MAX_HISTORY)
         self.frame = check_choice("frame", frame, FRAMES)
         self.inactive_arms = check_choice("inactive_arms", inactive_arms, INACTIVE_ARM_MODES)
+        self.waiting_goal = check_choice("waiting_goal", waiting_goal, WAITING_GOALS)
         check_choice("split", split, SPLITS)
         check_choice("reward_type", reward_type, REWARD_TYPES)
         if reward_kwargs is not None and not isinstance(reward_kwargs, Mapping):
@@ -184,7 +191,7 @@ class MultiArmEnv(gym.Env):
         homes = {arm_id: arm.home for arm_id, arm in self.arms.items()}
         self.task = InstructionTask(
             layout, self.targets, self.inactive_arms, reward_type, reward, homes,
-            check_number("success_tolerance", success_tolerance, 1e-3, MAX_SUCCESS_TOLERANCE),
+            check_number("success_tolerance", success_tolerance, 1e-3, MAX_SUCCESS_TOLERANCE), self.waiting_goal,
         )
 
         self.reading_size = OBS_PER_ARM_WITH_GOAL if self.observe_goal else OBS_PER_ARM
@@ -196,7 +203,8 @@ class MultiArmEnv(gym.Env):
         #: The settings that define this env's world, task and reward (a twin env is ``MultiArmEnv(**world_kwargs)``).
         self.world_kwargs: dict[str, Any] = dict(
             layout=layout, robot=self.robot, targets=self.targets, observe_goal=self.observe_goal, history=self.history,
-            frame=self.frame, inactive_arms=self.inactive_arms, reward_type=reward_type, reward_kwargs=reward.as_dict(),
+            frame=self.frame, inactive_arms=self.inactive_arms, waiting_goal=self.waiting_goal, reward_type=reward_type,
+            reward_kwargs=reward.as_dict(),
             terminate_on_collision=self.terminate_on_collision, safety_margin=self.safety_margin, n_substeps=n_substeps,
             split_seed=split_seed,
         )
@@ -249,7 +257,7 @@ class MultiArmEnv(gym.Env):
             reading[row, DIST_INDEX] = distance
             reading[row, PHASE_INDEX] = self.task.phase(arm)
             if self.observe_goal:
-                reading[row, GOAL_SLICE] = self.observed_point(arm, self.task.current_target(arm))
+                reading[row, GOAL_SLICE] = self.observed_point(arm, self.task.goal(arm))
         return reading
 
     def _observation(
