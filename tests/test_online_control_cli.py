@@ -37,3 +37,17 @@ def test_online_control_refuses_an_unloadable_model(tmp_path: Path, capsys: pyte
     with pytest.raises(SystemExit) as exit_info:
         online_control.main(["--model", str(tmp_path / "junk.zip"), "--schedule", "0:1", "--steps", "5"])
     assert exit_info.value.code == 2 and "not a saved model" in capsys.readouterr().err
+
+
+def test_task_family_covers_the_frame_and_what_a_waiting_arm_observes() -> None:
+    from vafn_sb3.loading import family_mismatch, task_family
+
+    assert task_family("VAFN/ThreeArmReachGoal-v1") == {
+        "n_arms": 3, "targets": "per_arm", "observe_goal": True, "inactive_arms": "hold", "robot": "kuka",
+        "frame": "world", "waiting_goal": "target"}
+    trained = ("VAFN/ThreeArmReach-v1", {"inactive_arms": "policy", "waiting_goal": "home", "frame": "base"})
+    assert family_mismatch(*trained, "VAFN/ThreeArmStream-v1") == [
+        "inactive_arms: trained with 'policy', running with 'hold'",
+        "frame: trained with 'base', running with 'world'",
+        "waiting_goal: trained with 'home', running with 'target'"]
+    assert family_mismatch(*trained, "VAFN/ThreeArmReach-v1", trained[1]) == []

@@ -15,7 +15,7 @@ from typing import Any
 #: Hyperparameters only MAML-SAC saves (an SB3 zip with them is a MAML-SAC model).
 MAML_KEYS = frozenset({"inner_steps", "meta_batch_size", "n_support", "n_query"})
 #: Env settings that define a task family: a policy trained with other values solves a different problem.
-FAMILY_KEYS = ("n_arms", "targets", "observe_goal", "inactive_arms", "robot")
+FAMILY_KEYS = ("n_arms", "targets", "observe_goal", "inactive_arms", "robot", "frame", "waiting_goal")
 
 
 def _candidates() -> dict[str, type]:
@@ -107,15 +107,17 @@ def training_env(path: str | Path) -> tuple[str | None, dict[str, Any]]:
 
 
 def task_family(env_id: str, env_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The task-family settings (arms, targets, observed goal, inactive arms, robot) of a registered vafn env."""
+    """The task-family settings (:data:`FAMILY_KEYS`) of a registered vafn env, defaults from ``MultiArmEnv``."""
+    import inspect
+
     import gymnasium as gym
 
-    import vafn_gym  # noqa: F401  (registers the env IDs)
+    from vafn_gym.envs import MultiArmEnv  # also registers the env IDs
 
     spec = gym.spec(env_id)
     kwargs = {**(spec.kwargs or {}), **(env_kwargs or {})}
-    defaults = {"n_arms": 3, "targets": "default", "observe_goal": False, "inactive_arms": "hold", "robot": "kuka"}
-    return {key: kwargs.get(key, defaults[key]) for key in FAMILY_KEYS}
+    defaults = inspect.signature(MultiArmEnv.__init__).parameters
+    return {key: kwargs.get(key, defaults[key].default) for key in FAMILY_KEYS}
 
 
 def family_mismatch(trained_id: str | None, trained_kwargs: dict[str, Any], env_id: str,
