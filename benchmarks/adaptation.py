@@ -7,8 +7,10 @@ collects ``--n-support`` transitions of the task with its stochastic policy (the
 K), takes K adaptation steps (``model.adapt``: MAML-SAC's inner rounds, the others' own gradient steps on the support
 set: :func:`vafn_sb3.common.adaptation.evaluate_adaptation`) and runs the adapted policy deterministically. Methods
 that adapt inside the episode (a history of readings, ``--method ... '{"history": 4}'``) and methods evaluated
-zero-shot run at K = 0 only (``zero-shot`` as the fifth field). The scripted controller (the ceiling) and a uniform
-random policy (the floor) run on the same tasks.
+zero-shot run at K = 0 only (``zero-shot`` as the fifth field). ``infer-targets`` runs a model trained with observed
+targets through :class:`vafn_sb3.target_inference.TargetInferencePolicy` (probe moves, then trilateration inside the
+episode; ``infer-targets-passive``: without the probe moves), also at K = 0 only. The scripted controller (the
+ceiling) and a uniform random policy (the floor) run on the same tasks.
 
 Writes to ``--out``: ``adaptation.csv`` (one row per method, seed, task and K), ``adaptation_summary.csv`` (per method
 and K: mean over seeds of the per-seed task means, with a 95 % Student-t half width over seeds), ``adaptation.png``
@@ -56,10 +58,14 @@ from vafn_sb3.common.adaptation_curves import (  # noqa: E402
     aggregate_adaptation,
     plot_adaptation,
 )
+from vafn_sb3.target_inference import TargetInferencePolicy  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 
 DEFAULT_K = [0, 1, 2, 5, 10, 20, 50]
 METRICS = tuple(ADAPTATION_METRICS)
+#: How a method may be evaluated instead of adapting over K (all K = 0 only): as it is, or a goal-observing model run
+#: through TargetInferencePolicy with and without its probe moves.
+MODES = ("zero-shot", "infer-targets", "infer-targets-passive")
 #: The reference policies every study includes (K = 0, no training).
 REFERENCES = ("scripted", "random")
 
@@ -73,22 +79,28 @@ class Method:
     paths: list[Path]
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     zero_shot: bool = False
+    #: None, or run a goal-observing model through TargetInferencePolicy (True: with its probe moves).
+    target_inference: bool | None = None
 
     @classmethod
     def parse(cls, fields: list[str]) -> Method:
-        """``LABEL ALGO GLOB [ENV_KWARGS_JSON] [zero-shot]`` from the command line (``ValueError`` if malformed)."""
+        """``LABEL ALGO GLOB [ENV_KWARGS_JSON] [MODE]`` from the command line (``ValueError`` if malformed)."""
         if not 3 <= len(fields) <= 5:
-            raise ValueError(f"--method takes LABEL ALGO GLOB [ENV_KWARGS_JSON] [zero-shot], got {fields}")
+            raise ValueError(f"--method takes LABEL ALGO GLOB [ENV_KWARGS_JSON] [{'|'.join(MODES)}], got {fields}")
         label, algo, pattern, *rest = fields
-        zero_shot = "zero-shot" in rest
-        rest = [item for item in rest if item != "zero-shot"]
+        modes = [item for item in rest if item in MODES]
+        rest = [item for item in rest if item not in MODES]
+        if len(modes) > 1 or len(rest) > 1:
+            raise ValueError(f"{label}: at most one ENV_KWARGS_JSON and one of {MODES}, got {fields[3:]}")
+        mode = modes[0] if modes else None
         env_kwargs = json.loads(rest[0]) if rest else {}
         if not isinstance(env_kwargs, dict):
             raise ValueError(f"{label}: ENV_KWARGS must be a JSON object, got {rest[0]!r}")
         paths = sorted(Path(p) for p in glob.glob(pattern))
         if not paths:
             raise ValueError(f"{label}: no model matches {pattern!r}")
-        return cls(label, algo, paths, env_kwargs, zero_shot)
+        return cls(label, algo, paths, env_kwargs, zero_shot=mode is not None,
+                   target_inference=None if mode in (None, "zero-shot") else mode == "infer-targets")
 
 
 def seed_of(path: Path) -> int:
@@ -102,9 +114,14 @@ def evaluate_model(method: Method, path: Path, args: argparse.Namespace, tasks: 
     torch.set_num_threads(1)
     register_algorithms()
     model = require_algorithm(method.algo).load(path, device="cpu")
+    env_kwargs = {**args.env_kwargs, **method.env_kwargs}
+    if method.target_inference is not None:
+        env = gym.make(args.env, **env_kwargs)
+        model = TargetInferencePolicy.for_env(model, env, probe=method.target_inference)
+        env.close()
     rows = evaluate_adaptation(model, args.env, tasks, n_support=args.n_support,
                                k_values=[0] if method.zero_shot else args.k, n_eval_episodes=args.n_eval_episodes,
-                               seed=args.seed, env_kwargs={**args.env_kwargs, **method.env_kwargs})
+                               seed=args.seed, env_kwargs=env_kwargs)
     return [{"method": method.label, "seed": seed_of(path), **row} for row in rows]
 
 
@@ -236,7 +253,8 @@ def main(argv: list[str] | None = None) -> None:
             "test_lengths": [args.min_length, args.max_length], "n_tasks": len(tasks), "benchmark_seed": benchmark.seed,
             "n_support_steps": args.n_support, "support_episodes_mean": episodes, "k": args.k,
             "methods": method_records + [{"label": m.label, "algo": m.algo, "models": [str(p) for p in m.paths],
-                                          "env_kwargs": m.env_kwargs, "zero_shot": m.zero_shot} for m in methods],
+                                          "env_kwargs": m.env_kwargs, "zero_shot": m.zero_shot,
+                                          "target_inference": m.target_inference} for m in methods],
             "eval_wall_s": round(time.perf_counter() - start, 1), "summary": summary}
     (args.out / "adaptation.json").write_text(json.dumps(meta, indent=2))
     print(title)

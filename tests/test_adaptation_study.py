@@ -45,6 +45,12 @@ def test_method_parse_fails_clearly(study, tmp_path):
         method.parse(["x", "sac", str(tmp_path / "*.zip"), "[1]"])
     parsed = method.parse(["x", "sac", str(tmp_path / "*.zip"), '{"history": 2}', "zero-shot"])
     assert parsed.env_kwargs == {"history": 2} and parsed.zero_shot and study["seed_of"](parsed.paths[0]) == 3
+    assert parsed.target_inference is None
+    inferred = method.parse(["x", "sac", str(tmp_path / "*.zip"), "infer-targets"])
+    assert inferred.zero_shot and inferred.target_inference is True and inferred.env_kwargs == {}
+    assert method.parse(["x", "sac", str(tmp_path / "*.zip"), "infer-targets-passive"]).target_inference is False
+    with pytest.raises(ValueError, match="at most one"):
+        method.parse(["x", "sac", str(tmp_path / "*.zip"), "zero-shot", "infer-targets"])
 
 
 def test_summary_is_a_mean_over_seeds_of_task_means_with_a_t_interval(study):
@@ -63,10 +69,12 @@ def test_study_end_to_end(study, tmp_path, monkeypatch, workers):
     for seed in (0, 1):
         tiny(MTSAC, {}, seed, models / f"mtsac_seed{seed}.zip")
     tiny(SAC, {"history": 2}, 0, models / "sac_seed0.zip")
+    tiny(SAC, {"observe_goal": True}, 0, models / "goal_seed0.zip")
     out = tmp_path / "out"
     argv = ["adaptation.py", "--max-length", "1", "--n-tasks", "2", "--k", "0", "1", "--n-support", "12",
             "--method", "mtsac", "mtsac", str(models / "mtsac_seed*.zip"),
             "--method", "history", "sac", str(models / "sac_seed*.zip"), '{"history": 2}', "zero-shot",
+            "--method", "inferred", "sac", str(models / "goal_seed*.zip"), "infer-targets",
             "--workers", str(workers), "--out", str(out)]
     if workers == 1:
         monkeypatch.setattr(sys, "argv", argv)
@@ -76,8 +84,9 @@ def test_study_end_to_end(study, tmp_path, monkeypatch, workers):
                        capture_output=True)
     with (out / "adaptation.csv").open() as handle:
         rows = list(csv.DictReader(handle))
-    counts = {m: sum(1 for r in rows if r["method"] == m) for m in ("scripted", "random", "mtsac", "history")}
-    assert counts == {"scripted": 2, "random": 2, "mtsac": 2 * 2 * 2, "history": 2}
+    methods = ("scripted", "random", "mtsac", "history", "inferred")
+    counts = {m: sum(1 for r in rows if r["method"] == m) for m in methods}
+    assert counts == {"scripted": 2, "random": 2, "mtsac": 2 * 2 * 2, "history": 2, "inferred": 2}
     assert all(float(r["success_rate"]) == 1.0 for r in rows if r["method"] == "scripted")
     meta = json.loads((out / "adaptation.json").read_text())
     assert meta["n_support_steps"] == 12 and meta["support_episodes_mean"] == 1.0

@@ -6,7 +6,7 @@ Importing the package registers the environment IDs listed in :data:`ENV_IDS` wi
 from gymnasium.envs.registration import register
 
 from vafn_gym.benchmarks import InstructionBenchmark, confidence_half_width, episode_rates, run_episode
-from vafn_gym.controllers import RandomPolicy, ScriptedController
+from vafn_gym.controllers import RandomPolicy, ScriptedController, trilaterate
 from vafn_gym.envs import MultiArmEnv, MultiArmStreamEnv
 from vafn_gym.instructions import Instruction, Waypoint, difficulty_of
 from vafn_gym.layout import ArmLayout
@@ -71,4 +71,5 @@ __all__ = [
     "difficulty_of",
     "episode_rates",
     "run_episode",
+    "trilaterate",
 ]

@@ -9,7 +9,7 @@ It works for any number of arms and any robot: it only needs each arm's home poi
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -36,6 +36,22 @@ CLEAR_DISTANCE = 0.08
 #: Proportional gain, in units of one full-speed step.
 GAIN = 1.0
 
+
+def trilaterate(points: Sequence[np.ndarray], distances: Sequence[float]) -> np.ndarray | None:
+    """The point at ``distances`` from ``points`` (linear least squares), or None while the points span no volume.
+
+    Subtracting the first equation ``|p_0 - t|^2 = d_0^2`` from the others leaves a linear system in ``t``; it
+    determines ``t`` once four of the points are not coplanar.
+    """
+    if len(points) < 4:
+        return None
+    points = np.asarray(points, dtype=np.float64)
+    dists = np.asarray(distances, dtype=np.float64)
+    a = 2.0 * (points[1:] - points[0])
+    b = (points[1:] ** 2).sum(1) - (points[0] ** 2).sum() - dists[1:] ** 2 + dists[0] ** 2
+    if np.linalg.matrix_rank(a, tol=1e-4) < 3:
+        return None
+    return np.linalg.lstsq(a, b, rcond=None)[0]
 
 class ScriptedController:
     """A deterministic policy with ``predict(obs) -> (action, None)`` like an SB3 model.
@@ -72,17 +88,6 @@ class ScriptedController:
     def _velocity_toward(self, position: np.ndarray, goal: np.ndarray) -> np.ndarray:
         step = V_MAX * CONTROL_DT
         return np.clip(GAIN * (goal - position) / step, -1.0, 1.0)
-
-    def _estimate_target(self) -> np.ndarray | None:
-        if len(self._samples) < 4:
-            return None
-        points = np.array([p for p, _ in self._samples])
-        dists = np.array([d for _, d in self._samples])
-        a = 2.0 * (points[1:] - points[0])
-        b = (points[1:] ** 2).sum(1) - (points[0] ** 2).sum() - dists[1:] ** 2 + dists[0] ** 2
-        if np.linalg.matrix_rank(a, tol=1e-4) < 3:
-            return None
-        return np.linalg.lstsq(a, b, rcond=None)[0]
 
     def act(self, observation: np.ndarray) -> np.ndarray:
         """The joint action for one observation."""
@@ -125,7 +130,7 @@ class ScriptedController:
             probe = len(self._samples) - 1
             if probe < len(PROBE_DIRECTIONS):
                 return PROBE_DIRECTIONS[probe]
-            target = self._estimate_target()
+            target = trilaterate([p for p, _ in self._samples], [d for _, d in self._samples])
         if target is None:
             return self._velocity_toward(positions[active], self.homes[active])
         return self._velocity_toward(positions[active], target)

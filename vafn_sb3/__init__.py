@@ -12,6 +12,7 @@ from vafn_sb3.mtsac import MTSAC
 from vafn_sb3.online import OnlineController
 from vafn_sb3.pretrained import available_pretrained, load_pretrained, pretrained_info
 from vafn_sb3.sac import SAC
+from vafn_sb3.target_inference import TargetInferencePolicy
 
 __all__ = [
     "MAAC",
@@ -27,6 +28,7 @@ __all__ = [
     "SAC",
     "RolloutCollisionCallback",
     "SuccessCollisionEvalCallback",
+    "TargetInferencePolicy",
     "aggregate_adaptation",
     "available_pretrained",
     "collect_support",
