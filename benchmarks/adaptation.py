@@ -7,10 +7,11 @@ collects ``--n-support`` transitions of the task with its stochastic policy (the
 K), takes K adaptation steps (``model.adapt``: MAML-SAC's inner rounds, the others' own gradient steps on the support
 set: :func:`vafn_sb3.common.adaptation.evaluate_adaptation`) and runs the adapted policy deterministically. Methods
 that adapt inside the episode (a history of readings, ``--method ... '{"history": 4}'``) and methods evaluated
-zero-shot run at K = 0 only (``zero-shot`` as the fifth field). ``infer-targets`` runs a model trained with observed
+zero-shot run at K = 0 only (``zero-shot`` as the fifth field). ``infer-probe`` runs a model trained with observed
 targets through :class:`vafn_sb3.target_inference.TargetInferencePolicy` (probe moves, then trilateration inside the
-episode; ``infer-targets-passive``: without the probe moves), also at K = 0 only. The scripted controller (the
-ceiling) and a uniform random policy (the floor) run on the same tasks.
+episode; ``infer-passive``: without the probe moves; ``infer-none``: the centre of the shared region as every goal),
+also at K = 0 only. The scripted controller (the ceiling) and a uniform random policy (the floor) run on the same
+tasks.
 
 Writes to ``--out``: ``adaptation.csv`` (one row per method, seed, task and K), ``adaptation_summary.csv`` (per method
 and K: mean over seeds of the per-seed task means, with a 95 % Student-t half width over seeds), ``adaptation.png``
@@ -58,14 +59,14 @@ from vafn_sb3.common.adaptation_curves import (  # noqa: E402
     aggregate_adaptation,
     plot_adaptation,
 )
-from vafn_sb3.target_inference import TargetInferencePolicy  # noqa: E402
+from vafn_sb3.target_inference import INFERENCE_MODES, TargetInferencePolicy  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 
 DEFAULT_K = [0, 1, 2, 5, 10, 20, 50]
 METRICS = tuple(ADAPTATION_METRICS)
 #: How a method may be evaluated instead of adapting over K (all K = 0 only): as it is, or a goal-observing model run
-#: through TargetInferencePolicy with and without its probe moves.
-MODES = ("zero-shot", "infer-targets", "infer-targets-passive")
+#: through TargetInferencePolicy with one of its inference settings ("infer-<setting>").
+MODES = ("zero-shot", *(f"infer-{inference}" for inference in INFERENCE_MODES))
 #: The reference policies every study includes (K = 0, no training).
 REFERENCES = ("scripted", "random")
 
@@ -79,8 +80,8 @@ class Method:
     paths: list[Path]
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     zero_shot: bool = False
-    #: None, or run a goal-observing model through TargetInferencePolicy (True: with its probe moves).
-    target_inference: bool | None = None
+    #: None, or the inference setting of TargetInferencePolicy that runs this goal-observing model.
+    target_inference: str | None = None
 
     @classmethod
     def parse(cls, fields: list[str]) -> Method:
@@ -100,7 +101,7 @@ class Method:
         if not paths:
             raise ValueError(f"{label}: no model matches {pattern!r}")
         return cls(label, algo, paths, env_kwargs, zero_shot=mode is not None,
-                   target_inference=None if mode in (None, "zero-shot") else mode == "infer-targets")
+                   target_inference=None if mode in (None, "zero-shot") else mode.removeprefix("infer-"))
 
 
 def seed_of(path: Path) -> int:
@@ -117,7 +118,7 @@ def evaluate_model(method: Method, path: Path, args: argparse.Namespace, tasks: 
     env_kwargs = {**args.env_kwargs, **method.env_kwargs}
     if method.target_inference is not None:
         env = gym.make(args.env, **env_kwargs)
-        model = TargetInferencePolicy.for_env(model, env, probe=method.target_inference)
+        model = TargetInferencePolicy.for_env(model, env, inference=method.target_inference)
         env.close()
     rows = evaluate_adaptation(model, args.env, tasks, n_support=args.n_support,
                                k_values=[0] if method.zero_shot else args.k, n_eval_episodes=args.n_eval_episodes,

@@ -46,11 +46,11 @@ def test_method_parse_fails_clearly(study, tmp_path):
     parsed = method.parse(["x", "sac", str(tmp_path / "*.zip"), '{"history": 2}', "zero-shot"])
     assert parsed.env_kwargs == {"history": 2} and parsed.zero_shot and study["seed_of"](parsed.paths[0]) == 3
     assert parsed.target_inference is None
-    inferred = method.parse(["x", "sac", str(tmp_path / "*.zip"), "infer-targets"])
-    assert inferred.zero_shot and inferred.target_inference is True and inferred.env_kwargs == {}
-    assert method.parse(["x", "sac", str(tmp_path / "*.zip"), "infer-targets-passive"]).target_inference is False
+    inferred = method.parse(["x", "sac", str(tmp_path / "*.zip"), "infer-probe"])
+    assert inferred.zero_shot and inferred.target_inference == "probe" and inferred.env_kwargs == {}
+    assert method.parse(["x", "sac", str(tmp_path / "*.zip"), "infer-none"]).target_inference == "none"
     with pytest.raises(ValueError, match="at most one"):
-        method.parse(["x", "sac", str(tmp_path / "*.zip"), "zero-shot", "infer-targets"])
+        method.parse(["x", "sac", str(tmp_path / "*.zip"), "zero-shot", "infer-probe"])
 
 
 def test_summary_is_a_mean_over_seeds_of_task_means_with_a_t_interval(study):
@@ -74,7 +74,7 @@ def test_study_end_to_end(study, tmp_path, monkeypatch, workers):
     argv = ["adaptation.py", "--max-length", "1", "--n-tasks", "2", "--k", "0", "1", "--n-support", "12",
             "--method", "mtsac", "mtsac", str(models / "mtsac_seed*.zip"),
             "--method", "history", "sac", str(models / "sac_seed*.zip"), '{"history": 2}', "zero-shot",
-            "--method", "inferred", "sac", str(models / "goal_seed*.zip"), "infer-targets",
+            "--method", "inferred", "sac", str(models / "goal_seed*.zip"), "infer-passive",
             "--workers", str(workers), "--out", str(out)]
     if workers == 1:
         monkeypatch.setattr(sys, "argv", argv)

@@ -49,8 +49,10 @@ def test_probes_make_a_goal_observing_policy_solve_hidden_targets(goal_oracle):
     env = gym.make(HIDDEN)
     tasks = InstructionBenchmark(HIDDEN, 3, 4, n_test=4).test_tasks
     probing = TargetInferencePolicy.for_env(goal_oracle, env)
-    passive = TargetInferencePolicy.for_env(goal_oracle, env, probe=False)
+    passive = TargetInferencePolicy.for_env(goal_oracle, env, inference="passive")
+    blind = TargetInferencePolicy.for_env(goal_oracle, env, inference="none")
     assert success_rate(probing, env, tasks, goal_oracle) == 1.0
+    assert success_rate(blind, env, tasks, goal_oracle) == 0.0
     # Without probes the readings of a near-straight approach barely constrain the target around its line: a long
     # instruction almost always has a waypoint that fails.
     assert success_rate(passive, env, tasks, goal_oracle) < 0.5
@@ -89,6 +91,8 @@ def test_bad_models_envs_and_batches_fail_clearly(goal_oracle):
     obs, _ = hidden.reset(seed=0)
     with pytest.raises(ValueError, match="one observation"):
         policy.predict(np.stack([obs, obs]))
+    with pytest.raises(ValueError, match="inference must be one of"):
+        TargetInferencePolicy.for_env(goal_oracle, hidden, inference="guess")
     with pytest.raises(ValueError, match="arm ids"):
         TargetInferencePolicy(goal_oracle, {1: np.zeros(3)}, {2: np.zeros(3)})
     hidden.close()

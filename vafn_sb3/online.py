@@ -131,6 +131,9 @@ class OnlineController:
         )
         self._dequeue_cpu = time.thread_time()
         self._policy = self.model
+        reset = getattr(self.model, "reset", None)
+        if callable(reset):  # a policy with per-instruction state (e.g. TargetInferencePolicy) starts afresh
+            reset()
         if self.k > 0:
             start = time.perf_counter()
             try:

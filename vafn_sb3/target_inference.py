@@ -5,8 +5,9 @@ hidden-target env (``VAFN/ThreeArmReachHidden-v1``) only the distance to it is o
 fills the gap inside the episode, with no gradient step: when an arm starts a waypoint it makes three one-step probe
 moves (the scripted controller's), trilaterates the target from its own (position, distance) readings, and from then
 on gives the learned policy the observation it was trained on, with the estimate as the goal (refined at every step).
-``probe=False`` drops the probe moves: the policy then heads for the centre of the shared region until its readings
-happen to span a volume, which shows what the probes are for.
+Two ablations: ``inference="passive"`` drops the probe moves (the policy heads for the centre of the shared region
+until its own readings span a volume), ``inference="none"`` never estimates (the goal stays the centre: the
+goal-observing policy with nothing inferred, this method's K = 0).
 """
 
 from __future__ import annotations
@@ -33,7 +34,10 @@ from vafn_gym.constants import (
 from vafn_gym.controllers import PROBE_DIRECTIONS, trilaterate
 from vafn_gym.layout import ArmLayout
 
-__all__ = ["TargetInferencePolicy"]
+__all__ = ["INFERENCE_MODES", "TargetInferencePolicy"]
+
+#: ``inference`` settings: probe moves then trilateration, trilateration of passive readings only, no inference.
+INFERENCE_MODES = ("probe", "passive", "none")
 
 #: Readings of one waypoint closer than this (metres) to the previous one are not recorded.
 MIN_SEPARATION = 1e-3
@@ -46,7 +50,7 @@ class TargetInferencePolicy:
         goal), i.e. trained with ``observe_goal=True``.
     :param homes: each arm's rest point (arm ids 1..N), in the observation's frame: the goal of a completed arm.
     :param priors: each arm's goal before its target is estimated (e.g. the shared region's centre), same frame.
-    :param probe: make the three probe moves at the start of every waypoint (False: rely on passive readings).
+    :param inference: one of :data:`INFERENCE_MODES`.
     """
 
     def __init__(
@@ -54,7 +58,7 @@ class TargetInferencePolicy:
         model: Any,
         homes: Mapping[int, np.ndarray],
         priors: Mapping[int, np.ndarray],
-        probe: bool = True,
+        inference: str = "probe",
     ) -> None:
         self.model = model
         self.arm_ids = tuple(sorted(int(arm) for arm in homes))
@@ -69,11 +73,13 @@ class TargetInferencePolicy:
             )
         self.homes = {arm: np.asarray(homes[arm], dtype=np.float64) for arm in self.arm_ids}
         self.priors = {arm: np.asarray(priors[arm], dtype=np.float64) for arm in self.arm_ids}
-        self.probe = bool(probe)
+        if inference not in INFERENCE_MODES:
+            raise ValueError(f"inference must be one of {INFERENCE_MODES}, got {inference!r}")
+        self.inference = inference
         self.reset()
 
     @classmethod
-    def for_env(cls, model: Any, env: gym.Env, probe: bool = True) -> TargetInferencePolicy:
+    def for_env(cls, model: Any, env: gym.Env, inference: str = "probe") -> TargetInferencePolicy:
         """A policy for ``env`` (a hidden-target :class:`MultiArmEnv`, any wrapper, ``history=1``)."""
         base = env.unwrapped
         if base.observe_goal or base.history != 1:
@@ -84,7 +90,7 @@ class TargetInferencePolicy:
         centre = np.array([0.0, 0.0, float(np.mean(base.layout.shared_z_range))])
         homes = {arm: base.observed_point(arm, arm_obj.home) for arm, arm_obj in base.arms.items()}
         priors = {arm: base.observed_point(arm, centre) for arm in base.arms}
-        return cls(model, homes, priors, probe=probe)
+        return cls(model, homes, priors, inference=inference)
 
     def reset(self) -> None:
         """Forget every reading and estimate (call at every episode start; ``run_episode`` does)."""
@@ -110,7 +116,7 @@ class TargetInferencePolicy:
             return
         self._points.append(position.copy())
         self._distances.append(distance)
-        estimate = trilaterate(self._points, self._distances)
+        estimate = None if self.inference == "none" else trilaterate(self._points, self._distances)
         if estimate is not None:
             self._estimate = estimate
 
@@ -145,7 +151,8 @@ class TargetInferencePolicy:
         action, _ = self.model.predict(self.goal_observation(obs), deterministic=deterministic)
         action = np.array(action, dtype=np.float32).reshape(-1)
         probe_index = len(self._points) - 1
-        if self.probe and active is not None and self._estimate is None and probe_index < len(PROBE_DIRECTIONS):
+        probing = self.inference == "probe" and self._estimate is None and probe_index < len(PROBE_DIRECTIONS)
+        if probing and active is not None:
             action[ArmLayout.block_slice(active, ACTION_PER_ARM)] = PROBE_DIRECTIONS[probe_index]
         return action
 

@@ -11,6 +11,10 @@ Examples::
     # any saved SB3 model (SAC, MTSAC, MAML-SAC, ...); Poisson arrivals of held-out instructions, K=5 rounds each
     python zoo/online_control.py --model runs/model.zip --targets per_arm --max-length 2 --split test \\
         --poisson-rate 0.004 --steps 3000 --k 5 --out runs/online
+
+    # a model trained with observed targets (observe_goal=True) on hidden targets, through target inference
+    python zoo/online_control.py --model runs/goal_mappo.zip --infer-targets probe --targets per_arm \\
+        --schedule "0:1,2,3;400:3,1,2" --steps 800 --out runs/online_hidden
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from vafn_gym.queue import PoissonArrivals, ScheduledArrivals  # noqa: E402
 from vafn_sb3 import load_pretrained  # noqa: E402
 from vafn_sb3.loading import family_mismatch, load_model, training_env  # noqa: E402
 from vafn_sb3.online import OnlineController  # noqa: E402
+from vafn_sb3.target_inference import INFERENCE_MODES, TargetInferencePolicy  # noqa: E402
 from zoo.plot import plot_online_distances  # noqa: E402
 
 
@@ -76,6 +81,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--max-length", type=int, default=3, help="longest sampled instruction")
     parser.add_argument("--k", type=int,
                         help="adaptation rounds per instruction (None: the model's inner_steps, 0 without adapt)")
+    parser.add_argument("--infer-targets", choices=list(INFERENCE_MODES), default=None,
+                        help="run a model trained with observed targets (observe_goal=True) on the stream's hidden "
+                             "targets through TargetInferencePolicy with this inference setting")
     parser.add_argument("--n-support", type=int, default=25, help="support transitions per instruction (twin env)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the arrivals, support rollouts and env")
     parser.add_argument("--out", type=Path, default=Path("runs/online"),
@@ -107,12 +115,20 @@ def main(argv: list[str] | None = None) -> None:
         model = ScriptedController.for_env(env)
     else:
         model = RandomPolicy(env.action_space, args.seed)
+    if args.infer_targets is not None:
+        if args.policy is not None:
+            parser.exit(2, "online_control.py: error: --infer-targets needs --model or --pretrained\n")
+        try:
+            model = TargetInferencePolicy.for_env(model, env, inference=args.infer_targets)
+        except ValueError as error:
+            parser.exit(2, f"online_control.py: error: {error}\n")
     if args.policy is None:
         expected = env.observation_space.shape
         if getattr(model, "observation_space", None) is not None and model.observation_space.shape != expected:
             parser.exit(2, f"online_control.py: error: the model observes {model.observation_space.shape}, the "
                            f"stream env gives {expected}: it was trained on another task family\n")
-        for difference in family_mismatch(*trained, "VAFN/ThreeArmStream-v1", {"targets": args.targets}):
+        observed = {"targets": args.targets, "observe_goal": args.infer_targets is not None}
+        for difference in family_mismatch(*trained, "VAFN/ThreeArmStream-v1", observed):
             warnings.warn(f"the model was trained on {trained[0]} and runs on VAFN/ThreeArmStream-v1 with another "
                           f"task family ({difference}); expect it to miss targets", stacklevel=1)
     if args.model is not None and trained[0] is None:
