@@ -39,6 +39,30 @@ def test_online_control_refuses_an_unloadable_model(tmp_path: Path, capsys: pyte
     assert exit_info.value.code == 2 and "not a saved model" in capsys.readouterr().err
 
 
+def test_online_control_infers_hidden_targets_for_a_goal_observing_model(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import warnings
+
+    import gymnasium as gym
+
+    import vafn_gym  # noqa: F401
+    from vafn_sb3 import SAC
+
+    env = gym.make("VAFN/ThreeArmReachGoal-v1", max_length=1)
+    SAC("MlpPolicy", env, policy_kwargs={"net_arch": [16, 16]}, seed=0).save(tmp_path / "goal.zip")
+    env.close()
+    (tmp_path / "goal.json").write_text(json.dumps({"env_id": "VAFN/ThreeArmReachGoal-v1"}))
+    common = ["--schedule", "0:1", "--steps", "20", "--targets", "per_arm", "--out", str(tmp_path / "out")]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the same task family once the targets are inferred: no warning
+        online_control.main(["--model", str(tmp_path / "goal.zip"), "--infer-targets", "probe", *common])
+    assert (tmp_path / "out" / "online_log.csv").read_text().count("\n") == 2
+    with pytest.raises(SystemExit) as exit_info:
+        online_control.main(["--policy", "scripted", "--infer-targets", "probe", *common])
+    assert exit_info.value.code == 2 and "--infer-targets needs --model" in capsys.readouterr().err
+
+
 def test_task_family_covers_the_frame_and_what_a_waiting_arm_observes() -> None:
     from vafn_sb3.loading import family_mismatch, task_family
 
