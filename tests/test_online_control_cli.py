@@ -63,6 +63,16 @@ def test_online_control_infers_hidden_targets_for_a_goal_observing_model(
     assert exit_info.value.code == 2 and "--infer-targets needs --model" in capsys.readouterr().err
 
 
+def test_online_control_runs_the_packaged_goal_observing_policy_on_hidden_targets(tmp_path: Path) -> None:
+    import csv
+
+    online_control.main(["--pretrained", "mappo", "--infer-targets", "probe", "--targets", "per_arm",
+                         "--schedule", "0:3,1", "--steps", "250", "--out", str(tmp_path)])
+    with (tmp_path / "online_log.csv").open() as handle:
+        (row,) = csv.DictReader(handle)
+    assert row["outcome"] == "completed" and row["success"] == "True" and row["collisions"] == "0"
+
+
 def test_task_family_covers_the_frame_and_what_a_waiting_arm_observes() -> None:
     from vafn_sb3.loading import family_mismatch, task_family
 

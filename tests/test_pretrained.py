@@ -32,3 +32,20 @@ def test_packaged_policy_completes_held_out_instructions(algo, env_id):
 def test_unknown_pair_lists_what_is_available():
     with pytest.raises(ValueError, match=r"no pretrained 'ppo' policy .*available: .*sac on VAFN/ThreeArmReach-v1"):
         load_pretrained("ppo")
+
+
+def test_packaged_goal_observing_mappo_completes_hidden_target_instructions_through_target_inference():
+    import gymnasium as gym
+
+    from vafn_gym import run_episode
+    from vafn_sb3 import TargetInferencePolicy
+
+    hidden = "VAFN/ThreeArmReachHidden-v1"
+    env = gym.make(hidden)
+    policy = TargetInferencePolicy.for_env(load_pretrained("mappo", "VAFN/ThreeArmReachGoal-v1"), env)
+    episodes = []
+    for index, task in enumerate(InstructionBenchmark(hidden, 1, 4, n_test=N_TASKS).test_tasks):
+        env.unwrapped.set_task(task)
+        episodes.append(run_episode(policy, env, seed=index))
+    env.close()
+    assert all(e["success"] and not e["collision"] for e in episodes), [e["outcome"] for e in episodes]

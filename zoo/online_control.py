@@ -102,8 +102,12 @@ def main(argv: list[str] | None = None) -> None:
         stream.arrival_process = PoissonArrivals(args.poisson_rate, sampler=stream.sampler.sample, seed=args.seed)
     trained: tuple[str | None, dict] = (None, {})
     if args.pretrained is not None:
-        model = load_pretrained(args.pretrained)
-        trained = ("VAFN/ThreeArmReach-v1", {})
+        # with --infer-targets: the packaged policy trained where the targets are observed
+        trained = ("VAFN/ThreeArmReachGoal-v1" if args.infer_targets else "VAFN/ThreeArmReach-v1", {})
+        try:
+            model = load_pretrained(args.pretrained, env_id=trained[0])
+        except ValueError as error:
+            parser.exit(2, f"online_control.py: error: {error}\n")
     elif args.model is not None:
         try:
             model, algo = load_model(args.model, args.algo)
