@@ -96,3 +96,15 @@ def test_bad_models_envs_and_batches_fail_clearly(goal_oracle):
     with pytest.raises(ValueError, match="arm ids"):
         TargetInferencePolicy(goal_oracle, {1: np.zeros(3)}, {2: np.zeros(3)})
     hidden.close()
+
+
+def test_a_waiting_arm_gets_the_goal_the_env_would_have_shown(goal_oracle):
+    for waiting_goal in ("target", "home"):
+        env = gym.make(HIDDEN, waiting_goal=waiting_goal)
+        policy = TargetInferencePolicy.for_env(goal_oracle, env)
+        env.unwrapped.set_task([1, 2])
+        obs, _ = env.reset(seed=0)
+        goal = policy.goal_observation(obs)[8 + 5:8 + 8]  # arm 2 waits
+        expected = policy.homes[2] if waiting_goal == "home" else policy.priors[2]
+        assert np.allclose(goal, expected, atol=1e-6), waiting_goal
+        env.close()

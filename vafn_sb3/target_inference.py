@@ -28,6 +28,7 @@ from vafn_gym.constants import (
     PHASE_COMPLETED,
     PHASE_EXECUTING,
     PHASE_INDEX,
+    PHASE_WAITING,
     POS_SLICE,
     V_MAX,
 )
@@ -51,6 +52,7 @@ class TargetInferencePolicy:
     :param homes: each arm's rest point (arm ids 1..N), in the observation's frame: the goal of a completed arm.
     :param priors: each arm's goal before its target is estimated (e.g. the shared region's centre), same frame.
     :param inference: one of :data:`INFERENCE_MODES`.
+    :param waiting_goal: the env's ``waiting_goal``: with "home" a waiting arm's goal is its home, as the model saw it.
     """
 
     def __init__(
@@ -59,6 +61,7 @@ class TargetInferencePolicy:
         homes: Mapping[int, np.ndarray],
         priors: Mapping[int, np.ndarray],
         inference: str = "probe",
+        waiting_goal: str = "target",
     ) -> None:
         self.model = model
         self.arm_ids = tuple(sorted(int(arm) for arm in homes))
@@ -76,6 +79,7 @@ class TargetInferencePolicy:
         if inference not in INFERENCE_MODES:
             raise ValueError(f"inference must be one of {INFERENCE_MODES}, got {inference!r}")
         self.inference = inference
+        self.waiting_goal = waiting_goal
         self.reset()
 
     @classmethod
@@ -90,7 +94,7 @@ class TargetInferencePolicy:
         centre = np.array([0.0, 0.0, float(np.mean(base.layout.shared_z_range))])
         homes = {arm: base.observed_point(arm, arm_obj.home) for arm, arm_obj in base.arms.items()}
         priors = {arm: base.observed_point(arm, centre) for arm in base.arms}
-        return cls(model, homes, priors, inference=inference)
+        return cls(model, homes, priors, inference=inference, waiting_goal=base.waiting_goal)
 
     def reset(self) -> None:
         """Forget every reading and estimate (call at every episode start; ``run_episode`` does)."""
@@ -105,14 +109,14 @@ class TargetInferencePolicy:
         """The active arm's current target estimate (observation frame), or None before the first trilateration."""
         return self._estimate
 
-    def _record(self, active: int | None, position: np.ndarray, distance: float) -> None:
+    def _record(self, active: int, position: np.ndarray, distance: float) -> None:
         # A new waypoint starts when the active arm changes or its distance jumps (the same arm reaching again).
         jumped = self._previous_distance is not None and distance > self._previous_distance + 2 * V_MAX * CONTROL_DT
         if active != self._active or jumped:
             self._active, self._points, self._distances, self._estimate = active, [], [], None
-        self._previous_distance = distance if active is not None else None
+        self._previous_distance = distance
         # A held arm (the env holds it until the others are home) repeats its reading: only new points count.
-        if active is None or (self._points and np.linalg.norm(position - self._points[-1]) < MIN_SEPARATION):
+        if self._points and np.linalg.norm(position - self._points[-1]) < MIN_SEPARATION:
             return
         self._points.append(position.copy())
         self._distances.append(distance)
@@ -127,7 +131,7 @@ class TargetInferencePolicy:
         for arm in self.arm_ids:
             block = obs[ArmLayout.block_slice(arm, OBS_PER_ARM)]
             phase = round(block[PHASE_INDEX])
-            if phase == PHASE_COMPLETED:
+            if phase == PHASE_COMPLETED or (phase == PHASE_WAITING and self.waiting_goal == "home"):
                 goal = self.homes[arm]
             elif phase == PHASE_EXECUTING and self._estimate is not None:
                 goal = self._estimate
@@ -146,8 +150,8 @@ class TargetInferencePolicy:
         active = next((arm for arm, b in blocks.items() if round(b[PHASE_INDEX]) == PHASE_EXECUTING), None)
         if active is not None:
             self._record(active, blocks[active][POS_SLICE], float(blocks[active][DIST_INDEX]))
-        else:
-            self._record(None, np.zeros(3), 0.0)
+        else:  # the instruction is complete: the next waypoint starts afresh
+            self._active, self._previous_distance = None, None
         action, _ = self.model.predict(self.goal_observation(obs), deterministic=deterministic)
         action = np.array(action, dtype=np.float32).reshape(-1)
         probe_index = len(self._points) - 1
