@@ -15,7 +15,8 @@ tasks.
 
 Writes to ``--out``: ``adaptation.csv`` (one row per method, seed, task and K), ``adaptation_summary.csv`` (per method
 and K: mean over seeds of the per-seed task means, with a 95 % Student-t half width over seeds), ``adaptation.png``
-and ``adaptation.json`` (the command, support budget in env steps and in episodes, wall times). Never asserts a number.
+and ``adaptation.json`` (the command, support budget in env steps and in episodes, wall times); ``--replot`` redraws the
+figure from them. Never asserts a number.
 
 Usage::
 
@@ -34,6 +35,7 @@ import csv
 import glob
 import json
 import re
+import shlex
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -60,7 +62,8 @@ from vafn_sb3.common.adaptation_curves import (  # noqa: E402
     plot_adaptation,
 )
 from vafn_sb3.target_inference import INFERENCE_MODES, TargetInferencePolicy  # noqa: E402
-from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
+from vafn_sb3.loading import load_model  # noqa: E402
+from zoo.registry import register_algorithms  # noqa: E402
 
 DEFAULT_K = [0, 1, 2, 5, 10, 20, 50]
 METRICS = tuple(ADAPTATION_METRICS)
@@ -114,7 +117,7 @@ def evaluate_model(method: Method, path: Path, args: argparse.Namespace, tasks: 
     """Adaptation rows of one saved model of ``method`` (K = 0 only when the method is zero-shot)."""
     torch.set_num_threads(1)
     register_algorithms()
-    model = require_algorithm(method.algo).load(path, device="cpu")
+    model, _ = load_model(path, method.algo)  # an SB3 zip or a packaged weights-only policy
     env_kwargs = {**args.env_kwargs, **method.env_kwargs}
     if method.target_inference is not None:
         env = gym.make(args.env, **env_kwargs)
@@ -197,6 +200,22 @@ def support_episodes(args: argparse.Namespace, tasks: list) -> float:
     return float(np.mean([np.ceil(args.n_support / budget) for budget in budgets]))
 
 
+def figure_title(meta: dict[str, Any]) -> str:
+    """The figure's title from ``adaptation.json``: what the run is, the tasks, the support budget."""
+    low, high = meta["test_lengths"]
+    prefix = f"{meta['title']}\n" if meta.get("title") else ""
+    return (f"{prefix}{meta['env']}: {meta['n_tasks']} held-out test instructions of lengths {low}-{high}; support "
+            f"{meta['n_support_steps']} env steps (~{meta['support_episodes_mean']:.1f} episodes) per adaptation; "
+            "mean over seeds ± 95 % CI")
+
+
+def replot(out: Path) -> Path:
+    """Redraw ``out/adaptation.png`` from the ``adaptation.csv`` and ``adaptation.json`` already there."""
+    meta = json.loads((out / "adaptation.json").read_text())
+    curves = aggregate_adaptation(read_rows(out / "adaptation.csv"))
+    return plot_adaptation(curves, out / "adaptation.png", figure_title(meta), references=REFERENCES)
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """Command-line flags."""
     parser = argparse.ArgumentParser(
@@ -218,12 +237,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="keep the other methods' rows of an earlier run in --out (same tasks and flags)")
     parser.add_argument("--workers", type=int, default=1, help="models evaluated in parallel (one thread each)")
     parser.add_argument("--out", type=Path, default=Path("results/adaptation"), help="output folder")
+    parser.add_argument("--title", default="", help="what this run is, put first in the figure's title")
+    parser.add_argument("--replot", action="store_true",
+                        help="only redraw --out's adaptation.png from its adaptation.csv (no evaluation)")
     return parser.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> None:
     """Evaluate every method's models and the references on the same held-out tasks; write CSV, summary, plot."""
     args = parse_args(argv)
+    if args.replot:
+        print(replot(args.out))
+        return
     torch.set_num_threads(1)
     methods = [Method.parse(fields) for fields in args.method]
     args.out.mkdir(parents=True, exist_ok=True)
@@ -246,11 +271,7 @@ def main(argv: list[str] | None = None) -> None:
     write_csv(rows, args.out / "adaptation.csv")
     write_csv(summary, args.out / "adaptation_summary.csv")
     episodes = support_episodes(args, tasks)
-    title = (f"{args.env}: {len(tasks)} held-out test instructions of lengths {args.min_length}-{args.max_length}; "
-             f"support {args.n_support} env steps (~{episodes:.1f} episodes) per adaptation; "
-             f"mean over seeds ± 95 % CI")
-    plot_adaptation(curves, args.out / "adaptation.png", title, references=REFERENCES)
-    meta = {"command": " ".join(sys.argv), "env": args.env, "env_kwargs": args.env_kwargs,
+    meta = {"command": shlex.join(sys.argv), "title": args.title, "env": args.env, "env_kwargs": args.env_kwargs,
             "test_lengths": [args.min_length, args.max_length], "n_tasks": len(tasks), "benchmark_seed": benchmark.seed,
             "n_support_steps": args.n_support, "support_episodes_mean": episodes, "k": args.k,
             "methods": method_records + [{"label": m.label, "algo": m.algo, "models": [str(p) for p in m.paths],
@@ -258,6 +279,8 @@ def main(argv: list[str] | None = None) -> None:
                                           "target_inference": m.target_inference} for m in methods],
             "eval_wall_s": round(time.perf_counter() - start, 1), "summary": summary}
     (args.out / "adaptation.json").write_text(json.dumps(meta, indent=2))
+    title = figure_title(meta)
+    plot_adaptation(curves, args.out / "adaptation.png", title, references=REFERENCES)
     print(title)
     print(f"{'method':>16} {'K':>3} " + " ".join(f"{m:>22}" for m in METRICS))
     for entry in summary:

@@ -1,6 +1,6 @@
 """Tests of the RL-Zoo front end.
 
-Algorithm registration, training from the YAMLs, tuning, plots, recording, reproduce.
+Algorithm registration, training from the YAMLs, tuning, plots, recording.
 """
 
 from __future__ import annotations
@@ -286,40 +286,6 @@ def test_meta_eval_callback_logs_post_adaptation_performance(tmp_path: Path) -> 
     assert {"meta/return_k0", "meta/success_k2", "meta/collision_k2"} <= set(logged)
     with pytest.raises(ValueError, match="k_values"):
         MetaEvalCallback(k_values=(-1,))
-
-
-def _reproduce_smoke(tmp_path: Path, *extra: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [PYTHON, str(REPO_ROOT / "zoo" / "reproduce.py"), "--smoke", "--algos", "maml_sac", "mappo", "--jobs", "2",
-         "--work", str(tmp_path / "work"), "--out", str(tmp_path / "results"), *extra],
-        env=SUBPROCESS_ENV, capture_output=True, text=True, timeout=600,
-    )
-
-
-def test_reproduce_smoke_writes_every_artefact(tmp_path: Path) -> None:
-    result = _reproduce_smoke(tmp_path)
-    assert result.returncode == 0, result.stderr[-3000:]
-    out = tmp_path / "results"
-    for name in ("fig3_adaptation.png", "fig3_adaptation.csv", "fig3_adaptation_summary.csv",
-                 "fig4_online_sac.png", "fig4_online_scripted.png", "training_return.png", "table1_smoke.md",
-                 "SUMMARY.md"):
-        assert (out / name).is_file(), f"{name} missing; stderr: {result.stderr[-2000:]}"
-    rows = (out / "fig3_adaptation.csv").read_text().splitlines()
-    assert len(rows) == 1 + 2 * 3, "one row per algorithm x K (1 task, 1 seed, K in 0, 1, 2)"
-    summary = (out / "SUMMARY.md").read_text()
-    assert "FAILED" not in summary and "Not produced" not in summary, summary
-    assert "| maml_sac |" in summary and "| scripted |" in summary and "Paper:" in summary
-    for header in (line for line in summary.splitlines() if line.startswith("| algorithm |")):
-        cells = [cell.strip() for cell in header.strip("|").split("|")]
-        assert len(cells) == len(set(cells)), f"duplicated column: {header}"
-    assert "(1 task)" in summary and "1 tasks" not in summary and "seed [0]" in summary
-
-    again = _reproduce_smoke(tmp_path)
-    assert again.returncode != 0 and "--resume" in again.stderr + again.stdout, "an earlier run must not be overwritten"
-    resumed = _reproduce_smoke(tmp_path, "--resume", "--skip-table1")
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
-    runs = sorted(p.name for p in (tmp_path / "work" / "logs").glob("seed0/*/*") if p.is_dir())
-    assert runs == ["VAFN-ThreeArmReachHidden-v1_1"] * 2, f"--resume retrained: {runs}"
 
 
 @pytest.mark.parametrize("algo", ALL_ALGOS)

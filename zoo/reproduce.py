@@ -1,23 +1,27 @@
-"""Reproduce the paper's results into a fresh folder: Fig. 3 (adaptation), Fig. 4 (online control), Table 1.
+"""Reproduce the paper's experiments into a fresh folder: the adaptation study (Fig. 3), Fig. 4, Table 1, SUMMARY.md.
 
-    python zoo/reproduce.py --quick      # <= 15 min on 2 cores: 2 seeds, short budgets
-    python zoo/reproduce.py --full       # <= 2 h on 2 cores: 5 seeds, 15k steps per algorithm
-    python zoo/reproduce.py --smoke --out /tmp/vafn-smoke   # CI: every stage end to end in about a minute
+    python zoo/reproduce.py --quick      # <= 15 min: the packaged checkpoints, and one short training per method
+    python zoo/reproduce.py --full       # about 4.5 h on 2 free cores (estimate): every method, 5 seeds, both families
+    python zoo/reproduce.py --smoke --out /tmp/vafn-smoke   # CI: every stage end to end in a few minutes
+    python zoo/reproduce.py --summary --out results --overwrite-results   # rewrite SUMMARY.md from a results folder
 
-Every run writes to ``runs/reproduce-<mode>-<timestamp>/`` (models and logs; figures and SUMMARY.md in its
+The study is data (``zoo/study.py``): every method of every panel trains with ``benchmarks/learning.py`` from its YAML
+for the mode's equal env-step budget, one single-threaded process per (method, seed), ``--jobs`` at a time; every
+panel is then one ``benchmarks/adaptation.py`` call, the one evaluation protocol (the same held-out *test*
+instructions, support sets and K for every method, the scripted ceiling and the random floor beside them).
+
+1. **Fig. 3**, two panels: the hidden family (``VAFN/ThreeArmReachHidden-v1``, lengths 1-4, success / collision /
+   return against K) and the order family (``VAFN/ThreeArmReach-v1``, lengths 1-10, K = 0: zero-shot generalisation).
+   ``--quick`` adds the packaged checkpoints (``vafn_sb3.available_pretrained``) to the panel of their env.
+2. **Fig. 4**: 2,000 steps of ``VAFN/ThreeArmStream-v1``, five instructions from ``[1,2,3]`` to ``[2,3,1,3,2,3]``,
+   :class:`vafn_sb3.OnlineController` driving each packaged ``VAFN/ThreeArmReach-v1`` policy beside the scripted
+   controller.
+3. **Table 1**: ``benchmarks/instruction_table.py``.
+4. ``SUMMARY.md``: every panel, stream and table beside the paper's claims, with commands, seeds and CPU times.
+
+Every run writes into ``runs/reproduce-<mode>-<timestamp>/`` (models and logs; figures and SUMMARY.md in its
 ``results/``) unless ``--work`` / ``--out`` say otherwise; the committed ``results/`` is only written with
-``--overwrite-results``.
-
-1. **Fig. 3**: MAML-SAC, MAAC, MAPPO, MADDPG and MTSAC each train through ``zoo/train.py`` (their
-   ``hyperparams/<algo>.yml``) for the *same* number of env steps per seed, then adapt to held-out test instructions
-   for K = 0..50 adaptation steps with the same support budget (``evaluate_adaptation``); average return, success
-   and collision rate against K, mean ± 95 % CI over seeds. Training curves go to ``training_*.png``.
-2. **Fig. 4**: 2,000 steps of ``VAFN/ThreeArmStream-v1`` with five instructions from ``[1,2,3]`` to
-   ``[2,3,1,3,2,3]`` arriving at equal intervals; :class:`vafn_sb3.OnlineController` runs the packaged pretrained
-   policies (``vafn_sb3.load_pretrained``; MAML-SAC adapts at each boundary) and the scripted controller runs the same
-   stream as the ceiling.
-3. **Table 1**: ``benchmarks/instruction_table.py`` (multimedia instruction generator).
-4. ``SUMMARY.md``: every figure and table beside the paper's claims, with the commit, seeds and wall times.
+``--overwrite-results``. ``--resume --work <folder>`` keeps the models already trained there.
 """
 
 from __future__ import annotations
@@ -29,9 +33,8 @@ import os
 import subprocess
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass, field, replace
-from multiprocessing import get_context
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -44,217 +47,171 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from vafn_gym.benchmarks import DEFAULT_TEST_SEED  # noqa: E402
 from vafn_gym.constants import SUCCESS_TOLERANCE  # noqa: E402
-from vafn_sb3.common.adaptation_curves import (  # noqa: E402
-    ADAPTATION_METRICS,
-    AdaptationCurve,
-    aggregate_adaptation,
-    plot_adaptation,
-)
-from zoo.plot import load_tensorboard, make_plots  # noqa: E402
+from zoo.study import BUDGETS, GOAL_ENV, HIDDEN_ENV, PANELS, Budget, Panel, StudyMethod  # noqa: E402
 
-#: The algorithms of Fig. 3, MAML-SAC first (the paper's comparison set).
-FIG3_ALGOS = ("maml_sac", "maac", "mappo", "maddpg", "mtsac")
 #: Fig. 4's five phases, simple to complex (first and last as in the paper).
 FIG4_PHASES = ("1,2,3", "3,1,2", "1,3,2,1", "3,2,1,3,2", "2,3,1,3,2,3")
 FIG4_ENV = "VAFN/ThreeArmStream-v1"
-#: Seed of the held-out instruction set (the same tasks for every algorithm and seed).
-HELD_OUT_SEED = DEFAULT_TEST_SEED
-#: Paper claims restated in SUMMARY.md (issue 4 and issue 3 quote them).
-PAPER_FIG3 = "MAML-SAC reaches success 1.0 by adaptation step 20 with zero collisions and beats MAAC, MAPPO, MADDPG."
 PAPER_FIG4 = "the online controller completes all five phases, each arm within tolerance of its target, no collisions."
+#: The paper's claim of each panel (by folder name), quoted in SUMMARY.md.
+PANEL_CLAIMS = {panel.name: panel.claim for panel in PANELS}
 
 
+# --- training: benchmarks/learning.py, one process per (method, seed) ---
 @dataclass(frozen=True)
-class Mode:
-    """Budgets of one reproduction mode."""
+class TrainJob:
+    """One method of one panel trained for one seed by ``benchmarks/learning.py``."""
 
-    name: str
-    seeds: tuple[int, ...]
-    timesteps: int
-    max_length: int
-    n_tasks: int
-    k_values: tuple[int, ...]
-    n_support: int
-    n_eval_episodes: int
-    eval_points: int
-    fig4_steps: int
-    table1_args: tuple[str, ...]
-    learning_starts_fraction: float = 0.1
-    algos: tuple[str, ...] = FIG3_ALGOS
-    env_id: str = "VAFN/ThreeArmReachHidden-v1"
-
-
-MODES: dict[str, Mode] = {
-    "smoke": Mode("smoke", (0,), 200, 1, 1, (0, 1, 2), 20, 1, 1, 200,
-                  ("--seeds", "1", "--items", "2", "--in-distribution", "0", "--transfer-items", "0", "--workers", "1"),
-                  learning_starts_fraction=0.75),
-    "quick": Mode("quick", (0, 1), 3000, 2, 3, (0, 1, 2, 5, 10, 20, 50), 100, 1, 4, 2000,
-                  ("--seeds", "1", "--items", "20", "--in-distribution", "0", "--transfer-items", "0")),
-    # 15k steps: MAAC (~0.1 CPU-s per update) dominates; scaled from the quick run, ~3.4 CPU-h = ~1.7 h on 2 free cores.
-    "full": Mode("full", (0, 1, 2, 3, 4), 15_000, 2, 5, (0, 1, 2, 3, 5, 10, 20, 30, 40, 50), 200, 2, 10, 2000, ()),
-}
-
-
-@dataclass
-class Job:
-    """One (algorithm, seed) training run followed by its adaptation evaluation."""
-
-    algo: str
+    panel: Panel
+    method: StudyMethod
     seed: int
-    mode: Mode
+    budget: Budget
     work: Path
-    rows: list[dict[str, Any]] = field(default_factory=list)
-    resume: bool = False
-    wall_s: float = 0.0
-    cpu_s: float = 0.0
-    error: str = ""
 
     @property
-    def log_folder(self) -> Path:
-        """Zoo log folder of this job (one per seed, so parallel jobs never race for a run id)."""
-        return self.work / "logs" / f"seed{self.seed}"
+    def tag(self) -> str:
+        """Suffix of learning.py's output files: the panel and the method label."""
+        return f"_{self.panel.name}_{self.method.label}"
 
     @property
-    def timing_path(self) -> Path:
-        """Where the training wall/CPU time of this job is kept (read back by ``--resume``)."""
-        return self.log_folder / self.algo / "train_time.json"
+    def model_dir(self) -> Path:
+        """Where this method's models (one per seed) are saved."""
+        return self.work / "models" / self.panel.name / self.method.label
 
     @property
     def model_path(self) -> Path:
-        """The trained model the zoo saves."""
-        env_name = self.mode.env_id.replace("/", "-")
-        return self.log_folder / self.algo / f"{env_name}_1" / f"{env_name}.zip"
+        """The saved model of this seed (learning.py's ``--save`` naming)."""
+        env_name = self.method.train_env.split("/")[-1]
+        return self.model_dir / f"{self.method.algo}_{env_name}{self.tag}_seed{self.seed}.zip"
+
+    @property
+    def log_path(self) -> Path:
+        """stdout and stderr of the training process."""
+        return self.work / "logs" / f"{self.panel.name}_{self.method.label}_seed{self.seed}.log"
+
+    def command(self) -> list[str]:
+        """learning.py's arguments: the mode's step budget, one final evaluation, the model kept."""
+        steps = self.budget.timesteps
+        command = [sys.executable, "benchmarks/learning.py", "--algo", self.method.algo, "--env", self.method.train_env,
+                   "--seeds", str(self.seed), "--steps", str(steps),
+                   "--train-max-length", str(self.budget.train_max_length), "--eval-every", str(steps),
+                   "--n-test", str(self.budget.n_tasks), "--out", str(self.work / "learning"),
+                   "--tag", self.tag, "--save", str(self.model_dir), "--append"]
+        if self.method.env_kwargs:
+            command += ["--env-kwargs", json.dumps(self.method.env_kwargs)]
+        if self.method.hyperparams:
+            command += ["--hyperparams", json.dumps(self.method.hyperparams)]
+        return command
 
 
-def short_budget_params(algo: str, mode: Mode) -> list[str]:
-    """``-params`` overrides that keep each algorithm's schedule meaningful within the mode's step budget."""
-    starts = int(mode.timesteps * mode.learning_starts_fraction)
-    if algo == "mappo":
-        return [f"n_steps:{min(1024, max(mode.timesteps // 6, 64))}", "batch_size:64"]
-    params = [f"learning_starts:{starts}"]
-    if algo == "maml_sac":
-        # One meta-iteration consumes meta_batch_size x (n_support + n_query) steps; keep several in the budget.
-        params += [f"warmup_steps:{mode.timesteps // 5}", f"n_support:{mode.n_support}", f"n_query:{mode.n_support}"]
-    return params
+def train_jobs(budget: Budget, panels: tuple[Panel, ...], work: Path) -> list[TrainJob]:
+    """Every (panel, method, seed) the mode trains."""
+    return [TrainJob(panel, method, seed, budget, work)
+            for panel in panels for method in panel.methods for seed in budget.seeds]
 
 
-def train_command(job: Job) -> list[str]:
-    """zoo/train.py arguments of a job (equal env-step budget for every algorithm)."""
-    mode = job.mode
-    return [
-        "--algo", job.algo, "--env", mode.env_id, "-n", str(mode.timesteps), "--seed", str(job.seed),
-        "-f", str(job.log_folder), "-tb", str(job.work / "tb" / f"seed{job.seed}"),
-        "--eval-freq", str(max(mode.timesteps // mode.eval_points, 1)), "--eval-episodes", "3",
-        "--verbose", "0",
-        "-params", *short_budget_params(job.algo, mode), "--env-kwargs", f"max_length:{mode.max_length}",
-    ]
+def run_training(jobs: list[TrainJob], n_workers: int) -> list[dict[str, Any]]:
+    """Train every job whose model is missing, ``n_workers`` processes at a time; one record per job."""
+
+    def run(job: TrainJob) -> dict[str, Any]:
+        record = {"panel": job.panel.name, "method": job.method.label, "seed": job.seed, "reused": True, "error": ""}
+        if not job.model_path.is_file():
+            job.model_dir.mkdir(parents=True, exist_ok=True)
+            job.log_path.parent.mkdir(parents=True, exist_ok=True)
+            with job.log_path.open("w") as log:
+                result = subprocess.run(job.command(), cwd=REPO_ROOT, stdout=log, stderr=subprocess.STDOUT,
+                                        env={**os.environ, "OMP_NUM_THREADS": "1"})
+            record["reused"] = False
+            if result.returncode != 0 or not job.model_path.is_file():
+                record["error"] = f"exit {result.returncode}, see {job.log_path}"
+        return record
+
+    records = []
+    with ThreadPoolExecutor(max_workers=n_workers) as pool:
+        futures = [pool.submit(run, job) for job in jobs]
+        for future in tqdm(as_completed(futures), total=len(futures), desc="training"):
+            record = future.result()
+            if record["error"]:
+                tqdm.write(f"{record['panel']}/{record['method']} seed {record['seed']} FAILED: {record['error']}")
+            records.append(record)
+    return records
 
 
-def held_out_tasks(mode: Mode) -> list[Any]:
-    """The held-out test instructions every algorithm adapts to."""
-    from vafn_gym import InstructionBenchmark
-
-    return InstructionBenchmark(mode.env_id, 1, mode.max_length, n_test=mode.n_tasks, seed=HELD_OUT_SEED).test_tasks
-
-
-def run_job(job: Job) -> Job:
-    """Train one algorithm for one seed with zoo/train.py, then measure its adaptation curve (runs in a child)."""
-    import contextlib
-    import io
-
-    import torch
-
-    from vafn_sb3.common.adaptation import evaluate_adaptation
-    from zoo.registry import register_algorithms, require_algorithm
-    from zoo.train import main as train_main
-
-    torch.set_num_threads(1)
-    start_wall, start_cpu = time.perf_counter(), time.process_time()
-    trained_wall = trained_cpu = 0.0
-    try:
-        if job.resume and job.model_path.is_file() and job.timing_path.is_file():
-            trained_wall, trained_cpu = json.loads(job.timing_path.read_text())
-        else:
-            with contextlib.redirect_stdout(io.StringIO()):
-                train_main(train_command(job))
-            job.timing_path.write_text(json.dumps([time.perf_counter() - start_wall, time.process_time() - start_cpu]))
-        register_algorithms()
-        model = require_algorithm(job.algo).load(job.model_path, device="cpu")
-        rows = evaluate_adaptation(
-            model, job.mode.env_id, held_out_tasks(job.mode), n_support=job.mode.n_support,
-            k_values=job.mode.k_values, n_eval_episodes=job.mode.n_eval_episodes, seed=job.seed,
-        )
-        job.rows = [{"algo": job.algo, "seed": job.seed, **row} for row in rows]
-    except Exception as error:  # noqa: BLE001 - one failed algorithm must not hide the others' results
-        job.error = f"{type(error).__name__}: {error}"
-    job.wall_s = trained_wall + time.perf_counter() - start_wall
-    job.cpu_s = trained_cpu + time.process_time() - start_cpu
-    return job
-
-
-def run_jobs(jobs: list[Job], n_workers: int) -> list[Job]:
-    """Run jobs in fresh single-threaded child processes, ``n_workers`` at a time, with a progress bar."""
-    done: list[Job] = []
-    context = get_context("spawn")
-    with ProcessPoolExecutor(max_workers=n_workers, mp_context=context, max_tasks_per_child=1) as pool:
-        futures = [pool.submit(run_job, job) for job in jobs]
-        for future in tqdm(as_completed(futures), total=len(futures), desc="train + adapt"):
-            job = future.result()
-            status = f"FAILED: {job.error}" if job.error else f"{job.wall_s:.0f} s"
-            tqdm.write(f"{job.algo} seed {job.seed}: {status}")
-            done.append(job)
-    return sorted(done, key=lambda j: (FIG3_ALGOS.index(j.algo) if j.algo in FIG3_ALGOS else 99, j.seed))
-
-
-def plot_fig3(aggregates: dict[str, dict[str, AdaptationCurve]], mode: Mode, path: Path) -> Path:
-    """Fig. 3: success, collision rate and return against adaptation steps K, one colour per algorithm."""
-    seeds = ",".join(map(str, mode.seeds))
-    title = (
-        f"Fig. 3 ({mode.name}): adaptation on {_plural(mode.n_tasks, 'held-out test instruction')} of {mode.env_id} "
-        f"(length {_lengths(mode.max_length)}); {mode.timesteps} training steps per algorithm, "
-        f"{'seed' if len(mode.seeds) == 1 else 'seeds'} {seeds}, "
-        f"{mode.n_support} support steps; mean ± 95% CI over seeds"
-    )
-    return plot_adaptation(aggregates, path, title)
-
-
-def write_rows(rows: list[dict[str, Any]], path: Path) -> Path:
-    """Rows of dicts as CSV (columns from the first row)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    return path
-
-
-def fig3_summary_rows(aggregates: dict[str, dict[str, AdaptationCurve]]) -> list[dict[str, Any]]:
-    """Long table of the Fig. 3 curves: algo, k, metric, mean, ci_low, ci_high, n_seeds."""
+def training_costs(work: Path) -> list[dict[str, Any]]:
+    """Per (panel, method, seed): env steps, wall and CPU seconds (training and its final check), final success."""
     rows = []
-    for metric, per_algo in aggregates.items():
-        for algo, agg in per_algo.items():
-            for k, mean, low, high in zip(agg.k, agg.mean, agg.low, agg.high):
-                rows.append({"algo": algo, "k": int(k), "metric": metric, "mean": round(float(mean), 4),
-                             "ci_low": round(float(low), 4), "ci_high": round(float(high), 4), "n_seeds": agg.n_seeds})
-    return rows
+    for path in sorted((work / "learning").glob("*_curves.csv")):
+        with path.open(newline="") as handle:
+            curves = list(csv.DictReader(handle))
+        summary = json.loads(path.with_name(path.name.replace("_curves.csv", "_summary.json")).read_text())
+        panel, _, label = summary["command"].split("--tag _", 1)[1].split()[0].partition("_")
+        for row in curves:
+            rows.append({"panel": panel, "method": label, "algo": summary["algo"], "env": summary["env"],
+                         "seed": int(row["seed"]), "timesteps": int(row["timesteps"]),
+                         "wall_s": float(row["wall_s"]), "cpu_s": float(row["cpu_s"]),
+                         "train_env_success": float(row["success"])})
+    order = {(panel.name, method.label): index
+             for index, (panel, method) in enumerate((p, m) for p in PANELS for m in p.methods)}
+    return sorted(rows, key=lambda row: (order.get((row["panel"], row["method"]), len(order)), row["seed"]))
+
+
+# --- evaluation: benchmarks/adaptation.py, one call per panel ---
+def pretrained_methods(panel: Panel) -> list[StudyMethod]:
+    """The packaged checkpoints a panel evaluates: those of its env, and goal-observing ones through inference."""
+    from vafn_sb3 import available_pretrained
+
+    methods = []
+    for algo, env_id in available_pretrained():
+        if env_id == panel.env_id:
+            methods.append(StudyMethod(f"pretrained_{algo}", algo, env_id, "adapt" if panel.over_k else "zero-shot"))
+        elif panel.env_id == HIDDEN_ENV and env_id == GOAL_ENV:
+            methods.append(StudyMethod(f"pretrained_{algo}_infer_probe", algo, env_id, "infer-probe"))
+    return methods
+
+
+def evaluate_panel(panel: Panel, budget: Budget, work: Path, out: Path, n_workers: int) -> dict[str, Any]:
+    """Run ``benchmarks/adaptation.py`` on one panel with every trained (and packaged) model; returns its status."""
+    from vafn_sb3.pretrained import pretrained_path
+
+    fields = []
+    for method in panel.methods:
+        folder = work / "models" / panel.name / method.label
+        if any(folder.glob("*_seed*.zip")):
+            fields.append(method.method_fields(str(folder / "*_seed*.zip")))
+    if budget.pretrained:
+        for method in pretrained_methods(panel):
+            fields.append(method.method_fields(str(pretrained_path(method.algo, method.train_env))))
+    what = (f"{budget.name} mode: {budget.timesteps} training steps per method and seed"
+            + (", plus the packaged checkpoints (pretrained_*)" if budget.pretrained else ""))
+    command = [sys.executable, "benchmarks/adaptation.py", "--env", panel.env_id,
+               "--min-length", str(panel.min_length), "--max-length", str(panel.max_length),
+               "--n-tasks", str(budget.n_tasks), "--k", *map(str, budget.k_values if panel.over_k else (0,)),
+               "--n-support", str(budget.n_support), "--workers", str(n_workers),
+               "--out", str(out / "adaptation" / panel.name), "--title", what]
+    for method in fields:
+        command += ["--method", *method]
+    if not fields:
+        return {"ok": False, "message": "no trained model"}
+    result = subprocess.run(command, cwd=REPO_ROOT, capture_output=True, text=True,
+                            env={**os.environ, "OMP_NUM_THREADS": "1"})
+    return {"ok": result.returncode == 0, "message": (result.stdout + result.stderr)[-2000:]}
 
 
 # --- Fig. 4 ---
-def run_stream(policy: Any, mode: Mode, seed: int, k: int) -> dict[str, np.ndarray]:
+def run_stream(policy: Any, budget: Budget, seed: int, k: int) -> dict[str, np.ndarray]:
     """Drive OnlineController over the five-phase stream; per-step distances, active arm and instruction sequence."""
     import gymnasium as gym
 
     from vafn_sb3 import OnlineController
 
-    spacing = mode.fig4_steps // len(FIG4_PHASES)
+    spacing = budget.fig4_steps // len(FIG4_PHASES)
     schedule = {index * spacing: code for index, code in enumerate(FIG4_PHASES)}
-    env = gym.make(FIG4_ENV, arrivals=schedule, auto_dequeue=False, horizon=mode.fig4_steps)
-    controller = OnlineController(policy, env, k=k, n_support=mode.n_support, seed=seed)
+    env = gym.make(FIG4_ENV, arrivals=schedule, auto_dequeue=False, horizon=budget.fig4_steps)
+    controller = OnlineController(policy, env, k=k, n_support=budget.n_support, seed=seed)
     active: list[int] = []
     try:
-        for _ in tqdm(range(mode.fig4_steps), desc="Fig. 4 stream", leave=False):
+        for _ in tqdm(range(budget.fig4_steps), desc="Fig. 4 stream", leave=False):
             info = controller.step()
             active.append(0 if info["active_arm"] is None else int(info["active_arm"]))
         log = [asdict(entry) for entry in controller.log]
@@ -310,7 +267,7 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(edges[::2], edges[1::2]))
 
 
-def fig4(mode: Mode, out: Path) -> dict[str, Any]:
+def fig4(budget: Budget, out: Path) -> dict[str, Any]:
     """Fig. 4 for every packaged pretrained policy of the stream's world and for the scripted ceiling."""
     import gymnasium as gym
 
@@ -326,8 +283,8 @@ def fig4(mode: Mode, out: Path) -> dict[str, Any]:
             runs.insert(0, (algo, model, int(getattr(model, "inner_steps", 0))))
     outcomes = {}
     for name, policy, k in runs:
-        trace = run_stream(policy, mode, seed=0, k=k)
-        title = (f"Fig. 4 ({mode.name}): {name} on {FIG4_ENV}, {mode.fig4_steps} steps, five phases"
+        trace = run_stream(policy, budget, seed=0, k=k)
+        title = (f"Fig. 4 ({budget.name}): {name} on {FIG4_ENV}, {budget.fig4_steps} steps, five phases"
                  + (f", adapted with K={k} at each boundary" if k else ""))
         plot_fig4(trace, title, out / f"fig4_online_{name}.png")
         if trace["log"]:
@@ -337,13 +294,13 @@ def fig4(mode: Mode, out: Path) -> dict[str, Any]:
 
 
 # --- Table 1 ---
-def table1(mode: Mode, out: Path) -> dict[str, Any]:
+def table1(budget: Budget, out: Path) -> dict[str, Any]:
     """Run the multimedia benchmark (Table 1); returns its status and output stem."""
     script = REPO_ROOT / "benchmarks" / "instruction_table.py"
-    stem = out / ("instruction_table" if mode.name == "full" else f"table1_{mode.name}")
+    stem = out / ("instruction_table" if budget.name == "full" else f"table1_{budget.name}")
     if not script.is_file():
         return {"ok": False, "stem": stem, "message": f"{script} not found (multimedia issue not landed)"}
-    command = [sys.executable, str(script.relative_to(REPO_ROOT)), *mode.table1_args, "--out", _relative(stem)]
+    command = [sys.executable, str(script.relative_to(REPO_ROOT)), *budget.table1_args, "--out", _relative(stem)]
     result = subprocess.run(command, cwd=REPO_ROOT, capture_output=True, text=True,
                             env={**os.environ, "OMP_NUM_THREADS": "1"})
     message = (result.stdout + result.stderr)[-3000:]
@@ -358,6 +315,16 @@ def _relative(path: Path) -> str:
         return str(path)
 
 
+def write_rows(rows: list[dict[str, Any]], path: Path) -> Path:
+    """Rows of dicts as CSV (columns from the first row)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    return path
+
+
 # --- SUMMARY.md ---
 def _git(*args: str) -> str:
     try:
@@ -366,118 +333,126 @@ def _git(*args: str) -> str:
         return "unknown"
 
 
-def _plural(count: int, word: str) -> str:
-    """``1 task``, ``3 tasks``."""
-    return f"{count} {word}{'' if count == 1 else 's'}"
+def _cell(entry: dict[str, Any] | None, metric: str) -> str:
+    """``mean ± 95 % half width`` of one summary entry (``-`` when the method has no row at that K)."""
+    if entry is None:
+        return "-"
+    return f"{float(entry[metric]):.2f} ± {float(entry[metric + '_ci95']):.2f}"
 
 
-def _lengths(max_length: int) -> str:
-    """``1`` or ``1-3``: the instruction lengths of a mode."""
-    return "1" if max_length == 1 else f"1-{max_length}"
+def panel_section(folder: Path) -> list[str]:
+    """SUMMARY.md lines of one adaptation panel: its claim, command, budget and one row per method."""
+    meta = json.loads((folder / "adaptation.json").read_text())
+    by_method: dict[str, dict[int, dict[str, Any]]] = {}
+    for entry in meta["summary"]:
+        by_method.setdefault(entry["method"], {})[int(entry["k"])] = entry
+    k_values = sorted({k for entries in by_method.values() for k in entries})
+    shown = list(dict.fromkeys(k for k in (0, 10, k_values[-1]) if k in k_values))
+    low, high = meta["test_lengths"]
+    lines = [f"### `{folder.name}`: {meta['env']}" + (f" {meta['env_kwargs']}" if meta["env_kwargs"] else ""), ""]
+    if folder.name in PANEL_CLAIMS:
+        lines += [f"Paper / claim: {PANEL_CLAIMS[folder.name]}", ""]
+    appended = " (the last of several `--append` runs; `adaptation.json` lists every method's models)"
+    lines += [f"{meta['n_tasks']} held-out test instructions of lengths {low}-{high}; a support set of "
+              f"{meta['n_support_steps']} env steps (~{meta['support_episodes_mean']:.1f} episodes) per task and K; "
+              f"mean ± 95 % CI over seeds. Figure `{folder.name}/adaptation.png`; command "
+              f"`python {meta['command']}`" + (appended if "--append" in meta["command"] else "") + ".", ""]
+    # A method whose env shows it the targets the panel hides is a reference, not a contender.
+    sighted = {m["label"] for m in meta["methods"] if m["env_kwargs"].get("observe_goal")}
+    header = ["method", "seeds", *(f"success K={k}" for k in shown), "collision at its last K"]
+    lines += ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
+    for method, entries in by_method.items():
+        last = entries[max(entries)]
+        name = f"{method} (sees the targets)" if method in sighted else method
+        cells = [name, str(next(iter(entries.values()))["n_seeds"]),
+                 *(_cell(entries.get(k), "success_rate") for k in shown), _cell(last, "collision_rate")]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", _verdict(by_method, excluded={"scripted", "random", *sighted}), ""]
+    return lines
 
 
-def _at_k(aggregates: dict[str, dict[str, AdaptationCurve]], metric: str, algo: str, k: int) -> str:
-    agg = aggregates[metric].get(algo)
-    if agg is None or k not in agg.k:
-        return "n/a"
-    i = int(np.flatnonzero(agg.k == k)[0])
-    return f"{agg.mean[i]:.2f} [{agg.low[i]:.2f}, {agg.high[i]:.2f}]" if agg.n_seeds > 1 else f"{agg.mean[i]:.2f}"
+def _verdict(by_method: dict[str, dict[int, dict[str, Any]]], excluded: set[str]) -> str:
+    """One sentence: the best learned method of the panel, and MAML-SAC's K = 0 and best K beside it."""
+    learned = {method: max(entries.values(), key=lambda e: float(e["success_rate"]))
+               for method, entries in by_method.items() if method not in excluded}
+    if not learned:
+        return "No learned method was evaluated."
+    best, entry = max(learned.items(), key=lambda item: float(item[1]["success_rate"]))
+    sentence = (f"Best learned method: {best}, success {float(entry['success_rate']):.2f} at K={int(entry['k'])} "
+                f"(collision {float(entry['collision_rate']):.2f}).")
+    for method in (m for m in by_method if m.endswith("maml_sac")):
+        entries, top = by_method[method], learned[method]
+        reached = float(top["success_rate"]) >= 0.95 and float(top["collision_rate"]) == 0
+        sentence += (f" {method}: {float(entries[min(entries)]['success_rate']):.2f} at K={min(entries)}, best "
+                     f"{float(top['success_rate']):.2f} at K={int(top['k'])} "
+                     f"({'at least' if reached else 'below'} 0.95 with zero collisions).")
+    return sentence
 
 
-def write_summary(mode: Mode, jobs: list[Job], aggregates: dict[str, dict[str, AdaptationCurve]],
-                  fig4_log: dict[str, Any], table: dict[str, Any], times: dict[str, float], out: Path) -> Path:
-    """results/SUMMARY.md: each result beside the paper's claim, with commit, seeds, wall times and honest gaps."""
-    changed = _git("status", "--porcelain", "--", "zoo", "vafn_sb3", "vafn_gym")
-    dirty = " (working tree had uncommitted changes)" if changed else ""
-    k_max = max(mode.k_values)
-    k_mid = 20 if 20 in mode.k_values else k_max
-    lines = [
-        f"# Reproduction summary ({mode.name} mode)", "",
-        f"Command: `python zoo/reproduce.py --{mode.name}` · commit `{_git('rev-parse', '--short', 'HEAD')}`{dirty} · "
-        f"{'seed' if len(mode.seeds) == 1 else 'seeds'} {list(mode.seeds)} · "
-        + ("**resumed** (`--resume`): the models were trained by an earlier run of the same mode; per-job times below "
-           "include their recorded training time, the wall times in this line cover only this run · "
-           if times["resumed"] else "")
-        + f"total wall time {times['total']/60:.1f} min on {os.cpu_count()} cores "
-        f"(train + adapt {times['fig3']/60:.1f} min, Fig. 4 {times['fig4']/60:.1f} min, "
-        f"Table 1 {times['table1']/60:.1f} min); "
-        f"the training and adaptation jobs used {sum(j.cpu_s for j in jobs)/60:.1f} CPU-min in total "
-        "(1-min load average "
-        f"at start: {times['load']:.1f}; other users' jobs share the cores, so wall time overstates the cost).",
-        "",
-        "## Fig. 3: adaptation on held-out instructions (`fig3_adaptation.png`, `fig3_adaptation.csv`)", "",
-        f"Paper: {PAPER_FIG3}", "",
-        f"Ours: {mode.env_id}, instructions of length {_lengths(mode.max_length)} from the *test* split "
-        f"({_plural(mode.n_tasks, 'task')}), "
-        f"{mode.timesteps} training steps per algorithm and seed (equal budgets), {mode.n_support} support steps, "
-        f"mean [95% CI] over {_plural(len(mode.seeds), 'seed')} {list(mode.seeds)}.", "",
-    ]
-    # One column per distinct (metric, K): with K in (0, 1, 2) the "K=20" column would repeat K=2's header.
-    columns = [("success_rate", k) for k in dict.fromkeys((0, k_mid, k_max))]
-    columns += [("collision_rate", k_max), ("return_mean", 0), ("return_mean", k_max)]
-    names = {"success_rate": "success", "collision_rate": "collision", "return_mean": "return"}
-    lines += ["| algorithm | " + " | ".join(f"{names[m]} K={k}" for m, k in columns) + " | train wall (s) |",
-              "|---" * (len(columns) + 2) + "|"]
-    for algo in mode.algos:
-        algo_jobs = [j for j in jobs if j.algo == algo]
-        wall = np.mean([j.wall_s for j in algo_jobs]) if algo_jobs else float("nan")
-        failed = [f"seed {j.seed}: {j.error}" for j in algo_jobs if j.error]
-        if failed:
-            lines.append(f"| {algo} | FAILED: {'; '.join(failed)} |" + " |" * (len(columns) - 1) + f" {wall:.0f} |")
-            continue
-        cells = " | ".join(_at_k(aggregates, m, algo, k) for m, k in columns)
-        lines.append(f"| {algo} | {cells} | {wall:.0f} |")
-    success = aggregates["success_rate"]
-    best = max((success[a].mean.max(), a) for a in success) if success else (0.0, "none")
-    lines += ["", _fig3_verdict(best, aggregates, mode), ""]
-    lines += ["## Fig. 4: long-horizon online control with the pretrained policies (`fig4_online_<policy>.png`)", "",
-              f"Paper: {PAPER_FIG4}", "",
-              f"Ours: {mode.fig4_steps} steps of {FIG4_ENV}, phases "
-              f"{', '.join(f'[{p}]' for p in FIG4_PHASES)} arriving every "
-              f"{mode.fig4_steps // len(FIG4_PHASES)} steps.", "",
-              "| policy | instructions started | succeeded | collisions | outcomes |", "|---|---|---|---|---|"]
-    for name, log in fig4_log.items():
-        if isinstance(log, str):
-            lines.append(f"| {name} | FAILED: {log} | | | |")
-            continue
-        succeeded = sum(bool(e["success"]) for e in log)
-        collisions = sum(int(e["collisions"]) for e in log)
-        outcomes = ", ".join(f"[{e['instruction']}] {e['outcome']}" for e in log)
-        lines.append(f"| {name} | {len(log)} | {succeeded} | {collisions} | {outcomes} |")
-    short = [name for name, log in fig4_log.items() if name != "scripted"
-             and (isinstance(log, str) or sum(bool(e["success"]) for e in log) < len(FIG4_PHASES))]
-    if short:
-        lines += ["", f"We fall short with {', '.join(short)}: not all five phases completed without contact; "
-                  "the scripted row shows the stream itself is solvable."]
-    lines += ["", "## Table 1: multimedia instruction generator", ""]
-    if table["ok"]:
-        md = Path(str(table["stem"]) + ".md")
-        lines += [f"Command: `python {table['command']}` (paper numbers printed beside ours by the benchmark).", ""]
-        lines += [md.read_text().strip() if md.is_file() else f"(see {table['stem']}.*)"]
+def stream_section(out: Path) -> list[str]:
+    """SUMMARY.md lines of Fig. 4 from the ``fig4_online_<policy>.csv`` logs in ``out``."""
+    lines = ["## Fig. 4: long-horizon online control (`fig4_online_<policy>.png`)", "", f"Paper: {PAPER_FIG4}", "",
+             f"Ours: {FIG4_ENV}, phases {', '.join(f'[{p}]' for p in FIG4_PHASES)} arriving at equal intervals.", "",
+             "| policy | instructions started | succeeded | contact steps | outcomes |", "|---|---|---|---|---|"]
+    logs = sorted(out.glob("fig4_online_*.csv"))
+    for path in logs:
+        with path.open(newline="") as handle:
+            log = list(csv.DictReader(handle))
+        succeeded = sum(row["success"] == "True" for row in log)
+        contacts = sum(int(row["collisions"]) for row in log)
+        outcomes = ", ".join(f"[{row['instruction']}] {row['outcome']}" for row in log)
+        lines.append(f"| {path.stem.removeprefix('fig4_online_')} | {len(log)} | {succeeded} | {contacts} | "
+                     f"{outcomes} |")
+    return lines + ([""] if logs else ["", "Not produced.", ""])
+
+
+def write_summary(out: Path, run: dict[str, Any] | None = None) -> Path:
+    """``out/SUMMARY.md`` from what ``out`` holds: adaptation panels, stream logs, Table 1, and the run's costs."""
+    lines = ["# Reproduction summary", ""]
+    records = sorted(out.glob("reproduce_*.json"))
+    if run is None and records:  # a folder written by a reproduce run: keep its header
+        run = json.loads(records[0].read_text())
+    if run is None:
+        lines += [f"Written by `python zoo/reproduce.py --summary` at commit `{_git('rev-parse', '--short', 'HEAD')}` "
+                  "from the results in this folder; each panel names the command that produced it.", ""]
     else:
-        lines += [f"Not produced: {table['message'].strip()[-800:]}"]
-    if mode.name != "full":
-        lines += ["", f"These are {mode.name}-mode numbers (short budgets, fewer seeds/items); run `--full` "
-                  f"({len(MODES['full'].seeds)} seeds, {MODES['full'].timesteps} steps per algorithm, "
-                  f"{_plural(MODES['full'].n_tasks, 'task')}) for the comparison the paper makes."]
+        budget = run["budget"]
+        lines += [f"Command: `python zoo/reproduce.py --{budget['name']}` · commit `{run['commit']}` · seeds "
+                  f"{list(budget['seeds'])} · {budget['timesteps']} env steps per method and seed (equal budgets) · "
+                  f"total wall time {run['times_s']['total'] / 60:.1f} min on {os.cpu_count()} cores (training "
+                  f"{run['times_s']['train'] / 60:.1f}, evaluation {run['times_s']['evaluate'] / 60:.1f}, Fig. 4 "
+                  f"{run['times_s']['fig4'] / 60:.1f}, Table 1 {run['times_s']['table1'] / 60:.1f} min); 1-min load "
+                  f"average at start {run['times_s']['load']:.1f}.", ""]
+        if budget["name"] != "full":
+            lines += [f"**{budget['name']} mode**: short training, few seeds and tasks: a check that every stage runs, "
+                      "not the comparison (`--full` is). The `pretrained_*` rows are the packaged checkpoints.", ""]
+    lines += ["## Fig. 3: adaptation and generalisation on held-out instructions", ""]
+    panels = sorted((out / "adaptation").glob("*/adaptation.json"))
+    order = {panel.name: index for index, panel in enumerate(PANELS)}
+    for meta in sorted(panels, key=lambda p: (order.get(p.parent.name, len(order)), p.parent.name)):
+        lines += panel_section(meta.parent)
+    if not panels:
+        lines += ["Not produced.", ""]
+    costs = out / "training_costs.csv"
+    if costs.is_file():
+        with costs.open(newline="") as handle:
+            rows = list(csv.DictReader(handle))
+        lines += ["### Training cost (`training_costs.csv`)", "",
+                  "| panel | method | seeds | env steps | CPU s per seed (mean) |", "|---|---|---|---|---|"]
+        groups: dict[tuple[str, str], list[dict[str, str]]] = {}
+        for row in rows:
+            groups.setdefault((row["panel"], row["method"]), []).append(row)
+        for (panel, method), group in groups.items():
+            lines.append(f"| {panel} | {method} | {len(group)} | {group[0]['timesteps']} | "
+                         f"{np.mean([float(r['cpu_s']) for r in group]):.0f} |")
+        lines.append("")
+    lines += stream_section(out)
+    lines += ["## Table 1: multimedia instruction generator", ""]
+    tables = sorted(out.glob("table1_*.md")) + sorted(out.glob("instruction_table.md"))
+    lines += [tables[0].read_text().strip(), ""] if tables else ["Not produced.", ""]
     path = out / "SUMMARY.md"
-    path.write_text("\n".join(lines) + "\n")
+    path.write_text("\n".join(lines))
     return path
-
-
-def _fig3_verdict(best: tuple[float, str], aggregates: dict[str, dict[str, AdaptationCurve]], mode: Mode) -> str:
-    """One honest sentence comparing our Fig. 3 with the paper's claim."""
-    success, algo = best
-    maml = aggregates["success_rate"].get("maml_sac")
-    if success == 0.0:
-        return (f"We fall short of the paper: no algorithm completes a single held-out instruction at any K after "
-                f"{mode.timesteps} training steps per algorithm (returns still differ, see the table and figure).")
-    if maml is not None and maml.mean.max() >= 0.95 and success <= maml.mean.max():
-        return "MAML-SAC reaches the paper's level here and is the best algorithm."
-    gain = "" if maml is None else (
-        f" MAML-SAC's success goes from {maml.mean[0]:.2f} at K=0 to {maml.mean[-1]:.2f} at K={int(maml.k[-1])}.")
-    return (f"We fall short of the paper: the best success rate of any algorithm at any K is {success:.2f} ({algo}), "
-            f"after only {mode.timesteps} training steps per algorithm on a shared 2-core CPU.{gain}")
 
 
 def main(argv: list[str] | None = None) -> Path:
@@ -486,89 +461,98 @@ def main(argv: list[str] | None = None) -> Path:
         description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
     group = parser.add_mutually_exclusive_group(required=True)
-    for name in MODES:
+    for name in BUDGETS:
         group.add_argument(f"--{name}", dest="mode", action="store_const", const=name, help=f"{name} mode")
+    group.add_argument("--summary", dest="mode", action="store_const", const="summary",
+                       help="only rewrite --out's SUMMARY.md from the results already there")
     parser.add_argument("--out", type=Path, default=None,
                         help="figures, tables and SUMMARY.md (None: <work>/results)")
     parser.add_argument("--work", type=Path, default=None,
                         help="models and logs (None: a fresh runs/reproduce-<mode>-<timestamp>)")
     parser.add_argument("--overwrite-results", action="store_true",
                         help="allow --out to be the committed results/ folder (maintainers refreshing it)")
-    parser.add_argument("--jobs", type=int, default=min(os.cpu_count() or 1, 16), help="parallel training processes")
-    parser.add_argument("--algos", nargs="+", default=None, choices=FIG3_ALGOS, help="subset of Fig. 3's algorithms")
+    parser.add_argument("--jobs", type=int, default=min(os.cpu_count() or 1, 16),
+                        help="parallel single-threaded processes")
+    parser.add_argument("--panels", nargs="+", default=None, choices=[p.name for p in PANELS],
+                        help="subset of the study's panels")
+    parser.add_argument("--methods", nargs="+", default=None, help="subset of the panels' method labels")
+    parser.add_argument("--seeds", type=int, nargs="+", default=None, help="override the mode's seeds")
     parser.add_argument("--skip-table1", action="store_true", help="do not run the multimedia benchmark")
-    parser.add_argument("--resume", action="store_true",
-                        help="reuse models already trained in --work (their recorded training time counts) "
-                        "and re-evaluate")
+    parser.add_argument("--resume", action="store_true", help="keep the models already trained in --work")
     parser.add_argument("--fig4-only", action="store_true",
                         help="only Fig. 4 with the packaged pretrained policies (no training; a few minutes)")
     args = parser.parse_args(argv)
-    mode = MODES[args.mode]
-    if args.algos:
-        mode = replace(mode, algos=tuple(args.algos))
     if args.jobs < 1:
         parser.error("--jobs must be >= 1")
+    if args.mode == "summary":
+        if args.out is None:
+            parser.error("--summary needs --out: the results folder to summarise")
+        if args.out.resolve() == (REPO_ROOT / "results").resolve() and not args.overwrite_results:
+            parser.error("--out results is the committed reference results; pass --overwrite-results")
+        path = write_summary(args.out)
+        print(path)
+        return path
     if args.resume and args.work is None:
         parser.error("--resume needs --work: the folder of the earlier run whose models to reuse")
-    work = args.work or REPO_ROOT / "runs" / f"reproduce-{mode.name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    budget = BUDGETS[args.mode]
+    if args.seeds:
+        budget = replace(budget, seeds=tuple(args.seeds))
+    panels = tuple(p for p in PANELS if args.panels is None or p.name in args.panels)
+    if args.methods:
+        unknown = set(args.methods) - {m.label for p in panels for m in p.methods}
+        if unknown:
+            parser.error(f"--methods: no such method in the panels: {sorted(unknown)}")
+        panels = tuple(replace(p, methods=tuple(m for m in p.methods if m.label in args.methods)) for p in panels)
+    work = args.work or REPO_ROOT / "runs" / f"reproduce-{budget.name}-{time.strftime('%Y%m%d-%H%M%S')}"
     out = args.out or work / "results"
     if out.resolve() == (REPO_ROOT / "results").resolve() and not args.overwrite_results:
         parser.error(f"--out {out} is the committed reference results; pass --overwrite-results to replace them")
     out.mkdir(parents=True, exist_ok=True)
     print(f"writing models and logs to {work}, results to {out}")
     if args.fig4_only:
-        for name, log in fig4(mode, out).items():
-            outcomes = ", ".join(f"[{e['instruction']}] {e['outcome']}, {e['collisions']} contact steps" for e in log)
-            print(f"{name}: {sum(bool(e['success']) for e in log)}/{len(FIG4_PHASES)} phases succeeded: {outcomes}")
+        for name, log in fig4(budget, out).items():
+            print(f"{name}: {sum(bool(e['success']) for e in log)}/{len(FIG4_PHASES)} phases succeeded")
         return out
-    if (work / "logs").exists() and not args.resume:
-        raise SystemExit(
-            f"{work}/logs exists from an earlier run; pass --resume to reuse its models, or another --work"
-        )
+    if (work / "models").exists() and not args.resume:
+        raise SystemExit(f"{work}/models exists from an earlier run; pass --resume to reuse its models, or another "
+                         "--work")
 
-    from zoo.registry import UNAVAILABLE, register_algorithms
-
-    register_algorithms()
-    missing = {a: UNAVAILABLE[a] for a in mode.algos if a in UNAVAILABLE}
-    if missing:
-        raise SystemExit(f"cannot reproduce Fig. 3, algorithms missing: {missing}")
-
-    times: dict[str, float] = {"load": os.getloadavg()[0], "resumed": float(args.resume)}
+    times: dict[str, float] = {"load": os.getloadavg()[0]}
     start = time.perf_counter()
-    jobs = run_jobs(
-        [Job(algo, seed, mode, work, resume=args.resume) for algo in mode.algos for seed in mode.seeds], args.jobs
-    )
-    rows = [row for job in jobs for row in job.rows]
-    aggregates = aggregate_adaptation(rows, group="algo") if rows else {metric: {} for metric in ADAPTATION_METRICS}
-    if rows:
-        write_rows(rows, out / "fig3_adaptation.csv")
-        write_rows(fig3_summary_rows(aggregates), out / "fig3_adaptation_summary.csv")
-        plot_fig3(aggregates, mode, out / "fig3_adaptation.png")
-    tb_curves = load_tensorboard([work / "tb"], ["return", "success", "collision"]) if (work / "tb").exists() else {}
-    if tb_curves:
-        make_plots(tb_curves, out / "training", f"training on {mode.env_id} ({mode.name}), seeds {list(mode.seeds)}")
-    write_rows([{"algo": j.algo, "seed": j.seed, "wall_s": round(j.wall_s, 1), "cpu_s": round(j.cpu_s, 1),
-                 "error": j.error} for j in jobs], out / "fig3_jobs.csv")
-    times["fig3"] = time.perf_counter() - start
+    records = run_training(train_jobs(budget, panels, work), args.jobs)
+    costs = training_costs(work)
+    if costs:
+        write_rows(costs, out / "training_costs.csv")
+    times["train"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    fig4_log: dict[str, Any] = {}
-    try:
-        fig4_log = fig4(mode, out)
-    except Exception as error:  # noqa: BLE001 - report in SUMMARY.md, keep going
-        fig4_log["pretrained"] = f"{type(error).__name__}: {error}"
+    status = {panel.name: evaluate_panel(panel, budget, work, out, args.jobs)
+              for panel in tqdm(panels, desc="evaluation")}
+    for name, result in status.items():
+        if not result["ok"]:
+            print(f"panel {name} not evaluated: {result['message']}", file=sys.stderr)
+    times["evaluate"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    fig4(budget, out)
     times["fig4"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    table = {"ok": False, "stem": "", "message": "skipped (--skip-table1)"}
+    table = {"ok": False, "message": "skipped (--skip-table1)"}
     if not args.skip_table1:
-        table = table1(mode, out)
+        table = table1(budget, out)
+        if not table["ok"]:
+            print(f"Table 1 not produced: {table['message']}", file=sys.stderr)
     times["table1"] = time.perf_counter() - start
-    times["total"] = times["fig3"] + times["fig4"] + times["table1"]
-    (out / f"reproduce_{mode.name}.json").write_text(json.dumps(
-        {"mode": asdict(mode), "times_s": times, "commit": _git("rev-parse", "HEAD")}, indent=1, default=str))
-    summary = write_summary(mode, jobs, aggregates, fig4_log, table, times, out)
+    times["total"] = sum(times[key] for key in ("train", "evaluate", "fig4", "table1"))
+    run = {"budget": asdict(budget), "panels": [p.name for p in panels], "times_s": times,
+           "commit": _git("rev-parse", "--short", "HEAD"), "training": records,
+           "failed": [r for r in records if r["error"]] + [{"panel": n, **s} for n, s in status.items() if not s["ok"]]}
+    (out / f"reproduce_{budget.name}.json").write_text(json.dumps(run, indent=1, default=str))
+    summary = write_summary(out, run)
     print(summary)
+    if run["failed"]:
+        raise SystemExit(f"{len(run['failed'])} stage(s) failed; see {out / f'reproduce_{budget.name}.json'}")
     return summary
 
 

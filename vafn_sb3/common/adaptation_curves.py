@@ -4,7 +4,7 @@ their figure.
 :func:`aggregate_adaptation` turns rows of several methods and seeds into one :class:`AdaptationCurve` per method and
 metric: at every K, each seed's rows are first averaged over tasks, then the mean over seeds gets a 95 % Student-t
 confidence interval (rates' intervals clipped to [0, 1]). :func:`plot_adaptation` draws success rate, collision rate
-and return against K. ``benchmarks/adaptation.py`` and ``zoo/reproduce.py`` (Fig. 3) both use them.
+and return against K. ``benchmarks/adaptation.py`` (which ``zoo/reproduce.py`` runs for Fig. 3) uses them.
 """
 
 from __future__ import annotations
@@ -111,8 +111,9 @@ def plot_adaptation(
     path = Path(path)
     k_max = max((float(curve.k.max()) for per_method in curves.values() for curve in per_method.values()), default=0)
     span = np.array([0.0, max(k_max, 1.0)])  # where the horizontal lines run
+    n_methods = max((len(per_method) for per_method in curves.values()), default=0)
     fig, axes = plt.subplots(1, len(ADAPTATION_METRICS), figsize=(14, 4))
-    colours = plt.get_cmap("tab10")
+    colours = plt.get_cmap("tab10" if n_methods <= 10 else "tab20")  # one colour per method, never repeated
     for ax, (metric, label) in zip(axes, ADAPTATION_METRICS.items(), strict=True):
         for index, (method, curve) in enumerate(curves.get(metric, {}).items()):
             style = {"color": colours(index % colours.N), "label": f"{method} (n={curve.n_seeds})"}
@@ -131,10 +132,11 @@ def plot_adaptation(
         if metric in RATE_METRICS:
             ax.set_ylim(-0.05, 1.05)
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=7)
+    # One legend beside the panels, so that no curve is hidden behind it.
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=7)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
     return path

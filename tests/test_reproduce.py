@@ -1,0 +1,87 @@
+"""zoo/reproduce.py: the study as data, every stage end to end (smoke mode), SUMMARY.md from a results folder."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO_ROOT))
+
+from zoo.reproduce import TrainJob, main as reproduce_main, write_summary  # noqa: E402
+from zoo.study import BUDGETS, HIDDEN_PANEL, PANELS  # noqa: E402
+
+SUBPROCESS_ENV = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def test_every_panel_method_has_its_algorithm_yaml_and_a_known_evaluation() -> None:
+    for panel in PANELS:
+        labels = [method.label for method in panel.methods]
+        assert len(labels) == len(set(labels)), f"{panel.name}: duplicated labels"
+        for method in panel.methods:
+            assert (REPO_ROOT / "hyperparams" / f"{method.algo}.yml").is_file(), method
+            assert method.evaluation in ("adapt", "zero-shot", "infer-probe"), method
+            assert panel.over_k or method.evaluation != "adapt", f"{panel.name} is evaluated at K = 0 only"
+
+
+def test_train_job_command_saves_where_the_evaluation_looks(tmp_path: Path) -> None:
+    method = next(m for m in HIDDEN_PANEL.methods if m.env_kwargs)
+    job = TrainJob(HIDDEN_PANEL, method, 3, BUDGETS["full"], tmp_path)
+    command = job.command()
+    assert command[command.index("--steps") + 1] == "50000" and command[command.index("--seeds") + 1] == "3"
+    assert json.loads(command[command.index("--env-kwargs") + 1]) == method.env_kwargs
+    assert Path(command[command.index("--save") + 1]) == job.model_path.parent
+    assert job.model_path.name.endswith(f"{job.tag}_seed3.zip")
+    assert method.method_fields("M")[-2:] == [json.dumps(method.env_kwargs), method.evaluation]
+
+
+def test_summary_is_written_from_a_results_folder(tmp_path: Path) -> None:
+    shutil.copytree(REPO_ROOT / "results" / "adaptation" / "hidden_long", tmp_path / "adaptation" / "hidden_long")
+    summary = write_summary(tmp_path).read_text()
+    row = next(line for line in summary.splitlines() if line.startswith("| goal_mappo_infer_probe |"))
+    meta = json.loads((tmp_path / "adaptation" / "hidden_long" / "adaptation.json").read_text())
+    entry = next(e for e in meta["summary"] if e["method"] == "goal_mappo_infer_probe")
+    assert f"{entry['success_rate']:.2f} ± {entry['success_rate_ci95']:.2f}" in row
+    assert "Best learned method" in summary and "Fig. 4" in summary
+    with pytest.raises(SystemExit):
+        reproduce_main(["--summary", "--out", str(REPO_ROOT / "results")])  # the committed folder needs a flag
+
+
+def _reproduce_smoke(tmp_path: Path, *extra: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(REPO_ROOT / "zoo" / "reproduce.py"), "--smoke", "--methods", "maml_sac", "mappo",
+         "--jobs", "2", "--work", str(tmp_path / "work"), "--out", str(tmp_path / "results"), *extra],
+        env=SUBPROCESS_ENV, capture_output=True, text=True, timeout=900,
+    )
+
+
+def test_reproduce_smoke_writes_every_artefact(tmp_path: Path) -> None:
+    result = _reproduce_smoke(tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    out = tmp_path / "results"
+    for name in ("adaptation/hidden/adaptation.png", "adaptation/order/adaptation.png", "training_costs.csv",
+                 "fig4_online_sac.png", "fig4_online_scripted.png", "table1_smoke.md", "SUMMARY.md"):
+        assert (out / name).is_file(), f"{name} missing; stderr: {result.stderr[-2000:]}"
+    # hidden: scripted, random, the packaged goal MAPPO at K = 0, maml_sac and mappo at K = 0 and 1 (1 task, 1 seed)
+    assert len((out / "adaptation" / "hidden" / "adaptation.csv").read_text().splitlines()) == 1 + 3 + 2 * 2
+    # order: scripted, random, maml_sac, mappo, the two packaged order-family policies, all at K = 0
+    assert len((out / "adaptation" / "order" / "adaptation.csv").read_text().splitlines()) == 1 + 6
+    summary = (out / "SUMMARY.md").read_text()
+    assert "FAILED" not in summary and "Not produced" not in summary, summary
+    assert "| maml_sac |" in summary and "| pretrained_sac |" in summary and "| scripted |" in summary
+    for header in (line for line in summary.splitlines() if line.startswith("| method |")):
+        cells = [cell.strip() for cell in header.strip("|").split("|")]
+        assert len(cells) == len(set(cells)), f"duplicated column: {header}"
+
+    again = _reproduce_smoke(tmp_path)
+    assert again.returncode != 0 and "--resume" in again.stderr + again.stdout, "an earlier run must not be overwritten"
+    resumed = _reproduce_smoke(tmp_path, "--resume", "--skip-table1", "--panels", "order")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    records = json.loads((out / "reproduce_smoke.json").read_text())["training"]
+    assert records and all(record["reused"] for record in records), "--resume retrained"

@@ -1,0 +1,126 @@
+"""The reproduction study as data: which methods train on which env, and on which held-out panel they are evaluated.
+
+``zoo/reproduce.py`` runs it: every :class:`StudyMethod` trains with ``benchmarks/learning.py`` (its YAML, the mode's
+equal step budget, one process per seed), every :class:`Panel` is one ``benchmarks/adaptation.py`` call (the one
+evaluation protocol: the same held-out test instructions, support sets and K for every method, with the scripted
+ceiling and the random floor beside them). Adding a method or a panel touches only this file.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+#: The order family: the instruction's order is visible through the phase flags, so K = 0 shows zero-shot
+#: generalisation to unseen orders.
+ORDER_ENV = "VAFN/ThreeArmReach-v1"
+#: The hidden family: one unobserved target per arm per instruction, seen only through the distances.
+HIDDEN_ENV = "VAFN/ThreeArmReachHidden-v1"
+#: The same world with the targets observed (what a target-inferring policy is trained on).
+GOAL_ENV = "VAFN/ThreeArmReachGoal-v1"
+
+
+@dataclass(frozen=True)
+class StudyMethod:
+    """One method of a panel: a label, its zoo algorithm, what it trains on and how the panel evaluates it.
+
+    ``evaluation`` is ``"adapt"`` (K adaptation steps on the panel's support sets, every K of the mode),
+    ``"zero-shot"`` (K = 0: a method that adapts inside the episode, or a panel that only measures generalisation) or
+    ``"infer-probe"`` (a model trained on observed targets run through ``TargetInferencePolicy``).
+    """
+
+    label: str
+    algo: str
+    train_env: str
+    evaluation: str = "adapt"
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+    hyperparams: dict[str, Any] = field(default_factory=dict)
+
+    def method_fields(self, models: str) -> list[str]:
+        """The ``--method`` fields of ``benchmarks/adaptation.py`` for this method's models (a glob)."""
+        fields = [self.label, self.algo, models]
+        if self.env_kwargs:
+            fields.append(json.dumps(self.env_kwargs))
+        if self.evaluation != "adapt":
+            fields.append(self.evaluation)
+        return fields
+
+
+@dataclass(frozen=True)
+class Panel:
+    """One figure of the study: methods evaluated on held-out test instructions of one env."""
+
+    name: str
+    env_id: str
+    min_length: int
+    max_length: int
+    methods: tuple[StudyMethod, ...]
+    over_k: bool
+    claim: str
+
+
+PAPER_FIG3 = "MAML-SAC reaches success 1.0 by adaptation step 20 with zero collisions and beats MAAC, MAPPO, MADDPG."
+
+#: Hidden family, default control mode: the paper's Fig. 3 comparison where adaptation can matter.
+HIDDEN_PANEL = Panel(
+    "hidden", HIDDEN_ENV, 1, 4,
+    (
+        StudyMethod("maml_sac", "maml_sac", HIDDEN_ENV),
+        StudyMethod("mtsac", "mtsac", HIDDEN_ENV),
+        StudyMethod("mappo", "mappo", HIDDEN_ENV),
+        StudyMethod("maddpg", "maddpg", HIDDEN_ENV),
+        StudyMethod("maac", "maac", HIDDEN_ENV, hyperparams={"train_freq": 4}),
+        StudyMethod("sac_history4", "sac", HIDDEN_ENV, "zero-shot", env_kwargs={"history": 4}),
+        StudyMethod("goal_mappo_infer_probe", "mappo", GOAL_ENV, "infer-probe"),
+    ),
+    over_k=True,
+    claim=PAPER_FIG3,
+)
+
+#: Order family: unseen orders at K = 0 (the phase flags say whose turn it is).
+ORDER_PANEL = Panel(
+    "order", ORDER_ENV, 1, 10,
+    (
+        StudyMethod("maml_sac", "maml_sac", ORDER_ENV, "zero-shot"),
+        StudyMethod("mtsac", "mtsac", ORDER_ENV, "zero-shot"),
+        StudyMethod("sac", "sac", ORDER_ENV, "zero-shot"),
+        StudyMethod("mappo", "mappo", ORDER_ENV, "zero-shot"),
+        StudyMethod("maddpg", "maddpg", ORDER_ENV, "zero-shot"),
+        StudyMethod("maac", "maac", ORDER_ENV, "zero-shot", hyperparams={"train_freq": 4}),
+    ),
+    over_k=False,
+    claim="A policy trained on short instructions follows unseen orders of lengths 1-10 without adaptation.",
+)
+
+#: The panels of the study, in the order of SUMMARY.md.
+PANELS: tuple[Panel, ...] = (HIDDEN_PANEL, ORDER_PANEL)
+
+
+@dataclass(frozen=True)
+class Budget:
+    """How much of the study a mode runs."""
+
+    name: str
+    seeds: tuple[int, ...]
+    timesteps: int
+    train_max_length: int
+    n_tasks: int
+    k_values: tuple[int, ...]
+    n_support: int
+    #: Also evaluate the packaged pretrained checkpoints of each panel's env (``--quick``).
+    pretrained: bool = False
+    #: Fig. 4 stream steps.
+    fig4_steps: int = 2000
+    #: ``benchmarks/instruction_table.py`` arguments (Table 1).
+    table1_args: tuple[str, ...] = ()
+
+
+BUDGETS: dict[str, Budget] = {
+    "smoke": Budget("smoke", (0,), 300, 1, 1, (0, 1), 40, pretrained=True, fig4_steps=200,
+                    table1_args=("--seeds", "1", "--items", "2", "--in-distribution", "0", "--transfer-items", "0",
+                                 "--workers", "1")),
+    "quick": Budget("quick", (0,), 3000, 2, 5, (0, 1, 10), 200, pretrained=True,
+                    table1_args=("--seeds", "1", "--items", "20", "--in-distribution", "0", "--transfer-items", "0")),
+    "full": Budget("full", (0, 1, 2, 3, 4), 50_000, 2, 15, (0, 1, 2, 5, 10, 20, 50), 400),
+}
