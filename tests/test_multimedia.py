@@ -491,3 +491,18 @@ def test_vocal_tract_warp_moves_formants_and_keeps_identity():
     assert np.argmax(warp_vocal_tract(peak, 1.15)) > 20 > np.argmax(warp_vocal_tract(peak, 0.87))
     warped = warp_vocal_tract(features, 0.9)
     assert warped.shape == features.shape and warped.dtype == features.dtype
+
+
+def _crash_on_second_shard(job: tuple) -> int:
+    """A shard worker that dies like a native crash (no Python exception) on job 1."""
+    if job[0] == 1:
+        os._exit(139)
+    return job[0]
+
+
+def test_a_crashing_generation_worker_raises_instead_of_hanging():
+    from vafn_media.dataset import run_shards
+
+    assert sorted(result for _, result in run_shards(_crash_on_second_shard, [(0,), (2,)], workers=2)) == [0, 2]
+    with pytest.raises(RuntimeError, match=r"worker process died.*unfinished jobs: .*\(1,\)"):
+        list(run_shards(_crash_on_second_shard, [(0,), (1,), (2,)], workers=2))

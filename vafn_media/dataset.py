@@ -10,10 +10,12 @@ from __future__ import annotations
 import hashlib
 import multiprocessing
 import os
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
-from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -104,8 +106,24 @@ def _render_range(args: tuple[int, str, int, int, str | None]) -> RawItems:
                     [r[1] for r in rendered], specs)
 
 
-def _pool(workers: int):
-    return multiprocessing.get_context("spawn").Pool(workers, maxtasksperchild=1, initializer=_quiet_worker)
+def run_shards(function: Callable[[tuple], Any], jobs: Sequence[tuple], workers: int) -> Iterator[tuple[tuple, Any]]:
+    """``(job, function(job))`` as each job finishes, every job in a fresh single-threaded spawn process.
+
+    A worker that dies (a speech engine's native crash) raises ``RuntimeError`` naming the unfinished jobs instead of
+    leaving the caller waiting forever, as ``multiprocessing.Pool`` would.
+    """
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max(1, workers), mp_context=context, initializer=_quiet_worker,
+                             max_tasks_per_child=1) as pool:
+        futures = {pool.submit(function, job): job for job in jobs}
+        try:
+            for future in as_completed(futures):
+                yield futures[future], future.result()
+        except BrokenProcessPool as error:
+            unfinished = [job for future, job in futures.items()
+                          if future.cancelled() or not future.done() or future.exception() is not None]
+            raise RuntimeError(f"a worker process died while running {function.__name__} (a native crash, e.g. in the "
+                               f"speech engine); unfinished jobs: {unfinished}") from error
 
 
 def _quiet_worker() -> None:
@@ -128,8 +146,8 @@ def generate_raw(seed: int, split: str, count: int, difficulty: str | None = Non
         (seed, split, s, min(SHARD_SIZE, start + count - s), difficulty)
         for s in range(start, start + count, SHARD_SIZE)
     ]
-    with _pool(workers) as pool:
-        parts = pool.map(_render_range, jobs, chunksize=1)
+    done = dict(run_shards(_render_range, jobs, workers))
+    parts = [done[job] for job in jobs]
     return RawItems([a for p in parts for a in p.arms], [w for p in parts for w in p.waveforms], parts[0].sample_rate,
                     [im for p in parts for im in p.images], [s for p in parts for s in p.specs])
 
@@ -254,8 +272,8 @@ def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CAC
             for s in range(0, count, SHARD_SIZE)]
     todo = [job for job in jobs if not os.path.exists(job[-1])]
     if todo:
-        with _pool(workers) as pool, tqdm(total=len(jobs), initial=len(jobs) - len(todo), disable=not progress,
-                                          desc=f"generating {split} data", unit="shard") as bar:
-            for _ in pool.imap_unordered(_compact_shard, todo, chunksize=1):
+        with tqdm(total=len(jobs), initial=len(jobs) - len(todo), disable=not progress,
+                  desc=f"generating {split} data", unit="shard") as bar:
+            for _ in run_shards(_compact_shard, todo, workers):
                 bar.update()
     return TrainingData.load([job[-1] for job in jobs])
