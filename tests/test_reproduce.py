@@ -72,6 +72,8 @@ def test_reproduce_smoke_writes_every_artefact(tmp_path: Path) -> None:
     assert len((out / "adaptation" / "hidden" / "adaptation.csv").read_text().splitlines()) == 1 + 3 + 2 * 2
     # order: scripted, random, maml_sac, mappo, the two packaged order-family policies, all at K = 0
     assert len((out / "adaptation" / "order" / "adaptation.csv").read_text().splitlines()) == 1 + 6
+    costs = (out / "training_costs.csv").read_text().splitlines()
+    assert len(costs) == 1 + 4 and all(",300," in row or ",1024," in row for row in costs[1:]), costs
     summary = (out / "SUMMARY.md").read_text()
     assert "FAILED" not in summary and "Not produced" not in summary, summary
     assert "| maml_sac |" in summary and "| pretrained_sac |" in summary and "| scripted |" in summary

@@ -80,10 +80,19 @@ class TrainJob:
         return self.work / "models" / self.panel.name / self.method.label
 
     @property
+    def name(self) -> str:
+        """learning.py's file stem: ``<algo>_<EnvName><tag>``."""
+        return f"{self.method.algo}_{self.method.train_env.split('/')[-1]}{self.tag}"
+
+    @property
     def model_path(self) -> Path:
         """The saved model of this seed (learning.py's ``--save`` naming)."""
-        env_name = self.method.train_env.split("/")[-1]
-        return self.model_dir / f"{self.method.algo}_{env_name}{self.tag}_seed{self.seed}.zip"
+        return self.model_dir / f"{self.name}_seed{self.seed}.zip"
+
+    @property
+    def curves_path(self) -> Path:
+        """learning.py's curves file of this method (every seed's rows)."""
+        return self.work / "learning" / f"{self.name}_curves.csv"
 
     @property
     def log_path(self) -> Path:
@@ -138,22 +147,19 @@ def run_training(jobs: list[TrainJob], n_workers: int) -> list[dict[str, Any]]:
     return records
 
 
-def training_costs(work: Path) -> list[dict[str, Any]]:
-    """Per (panel, method, seed): env steps, wall and CPU seconds (training and its final check), final success."""
+def training_costs(jobs: list[TrainJob]) -> list[dict[str, Any]]:
+    """Per job: env steps, wall and CPU seconds (training and its final check), success on the training env."""
     rows = []
-    for path in sorted((work / "learning").glob("*_curves.csv")):
-        with path.open(newline="") as handle:
-            curves = list(csv.DictReader(handle))
-        summary = json.loads(path.with_name(path.name.replace("_curves.csv", "_summary.json")).read_text())
-        panel, _, label = summary["command"].split("--tag _", 1)[1].split()[0].partition("_")
-        for row in curves:
-            rows.append({"panel": panel, "method": label, "algo": summary["algo"], "env": summary["env"],
-                         "seed": int(row["seed"]), "timesteps": int(row["timesteps"]),
-                         "wall_s": float(row["wall_s"]), "cpu_s": float(row["cpu_s"]),
-                         "train_env_success": float(row["success"])})
-    order = {(panel.name, method.label): index
-             for index, (panel, method) in enumerate((p, m) for p in PANELS for m in p.methods)}
-    return sorted(rows, key=lambda row: (order.get((row["panel"], row["method"]), len(order)), row["seed"]))
+    for job in jobs:
+        if not job.curves_path.is_file():
+            continue
+        with job.curves_path.open(newline="") as handle:
+            final = [row for row in csv.DictReader(handle) if int(row["seed"]) == job.seed][-1:]
+        rows += [{"panel": job.panel.name, "method": job.method.label, "algo": job.method.algo,
+                  "env": job.method.train_env, "seed": job.seed, "timesteps": int(row["timesteps"]),
+                  "wall_s": float(row["wall_s"]), "cpu_s": float(row["cpu_s"]),
+                  "train_env_success": float(row["success"])} for row in final]
+    return rows
 
 
 # --- evaluation: benchmarks/adaptation.py, one call per panel ---
@@ -519,8 +525,9 @@ def main(argv: list[str] | None = None) -> Path:
 
     times: dict[str, float] = {"load": os.getloadavg()[0]}
     start = time.perf_counter()
-    records = run_training(train_jobs(budget, panels, work), args.jobs)
-    costs = training_costs(work)
+    jobs = train_jobs(budget, panels, work)
+    records = run_training(jobs, args.jobs)
+    costs = training_costs(train_jobs(budget, PANELS, work))  # also the panels an earlier run here trained
     if costs:
         write_rows(costs, out / "training_costs.csv")
     times["train"] = time.perf_counter() - start
