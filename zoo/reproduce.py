@@ -59,6 +59,11 @@ PANEL_CLAIMS = {panel.name: panel.claim for panel in PANELS}
 
 
 # --- training: benchmarks/learning.py, one process per (method, seed) ---
+def model_dir(work: Path, panel: Panel, method: StudyMethod) -> Path:
+    """Where the models of one method of one panel are saved (one per seed), and where its evaluation finds them."""
+    return work / "models" / panel.name / method.label
+
+
 @dataclass(frozen=True)
 class TrainJob:
     """One method of one panel trained for one seed by ``benchmarks/learning.py``."""
@@ -77,7 +82,7 @@ class TrainJob:
     @property
     def model_dir(self) -> Path:
         """Where this method's models (one per seed) are saved."""
-        return self.work / "models" / self.panel.name / self.method.label
+        return model_dir(self.work, self.panel, self.method)
 
     @property
     def name(self) -> str:
@@ -182,12 +187,14 @@ def evaluate_panel(panel: Panel, budget: Budget, work: Path, out: Path, n_worker
 
     fields = []
     for method in panel.methods:
-        folder = work / "models" / panel.name / method.label
+        folder = model_dir(work, panel, method)
         if any(folder.glob("*_seed*.zip")):
             fields.append(method.method_fields(str(folder / "*_seed*.zip")))
     if budget.pretrained:
         for method in pretrained_methods(panel):
             fields.append(method.method_fields(str(pretrained_path(method.algo, method.train_env))))
+    if not fields:
+        return {"ok": False, "message": "no trained model"}
     what = (f"{budget.name} mode: {budget.timesteps} training steps per method and seed"
             + (", plus the packaged checkpoints (pretrained_*)" if budget.pretrained else ""))
     command = [sys.executable, "benchmarks/adaptation.py", "--env", panel.env_id,
@@ -197,8 +204,6 @@ def evaluate_panel(panel: Panel, budget: Budget, work: Path, out: Path, n_worker
                "--out", str(out / "adaptation" / panel.name), "--title", what]
     for method in fields:
         command += ["--method", *method]
-    if not fields:
-        return {"ok": False, "message": "no trained model"}
     result = subprocess.run(command, cwd=REPO_ROOT, capture_output=True, text=True,
                             env={**os.environ, "OMP_NUM_THREADS": "1"})
     return {"ok": result.returncode == 0, "message": (result.stdout + result.stderr)[-2000:]}
@@ -490,12 +495,14 @@ def main(argv: list[str] | None = None) -> Path:
     args = parser.parse_args(argv)
     if args.jobs < 1:
         parser.error("--jobs must be >= 1")
+    if args.mode == "summary" and args.out is None:
+        parser.error("--summary needs --out: the results folder to summarise")
+    work = args.work or REPO_ROOT / "runs" / f"reproduce-{args.mode}-{time.strftime('%Y%m%d-%H%M%S')}"
+    out = args.out or work / "results"
+    if out.resolve() == (REPO_ROOT / "results").resolve() and not args.overwrite_results:
+        parser.error(f"--out {out} is the committed reference results; pass --overwrite-results to replace them")
     if args.mode == "summary":
-        if args.out is None:
-            parser.error("--summary needs --out: the results folder to summarise")
-        if args.out.resolve() == (REPO_ROOT / "results").resolve() and not args.overwrite_results:
-            parser.error("--out results is the committed reference results; pass --overwrite-results")
-        path = write_summary(args.out)
+        path = write_summary(out)
         print(path)
         return path
     if args.resume and args.work is None:
@@ -509,10 +516,6 @@ def main(argv: list[str] | None = None) -> Path:
         if unknown:
             parser.error(f"--methods: no such method in the panels: {sorted(unknown)}")
         panels = tuple(replace(p, methods=tuple(m for m in p.methods if m.label in args.methods)) for p in panels)
-    work = args.work or REPO_ROOT / "runs" / f"reproduce-{budget.name}-{time.strftime('%Y%m%d-%H%M%S')}"
-    out = args.out or work / "results"
-    if out.resolve() == (REPO_ROOT / "results").resolve() and not args.overwrite_results:
-        parser.error(f"--out {out} is the committed reference results; pass --overwrite-results to replace them")
     out.mkdir(parents=True, exist_ok=True)
     print(f"writing models and logs to {work}, results to {out}")
     if args.fig4_only:
