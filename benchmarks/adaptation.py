@@ -54,6 +54,7 @@ from tqdm import tqdm  # noqa: E402
 
 import vafn_gym  # noqa: E402,F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark, RandomPolicy, ScriptedController  # noqa: E402
+from vafn_gym.files import write_csv_rows  # noqa: E402
 from vafn_sb3.common.adaptation import evaluate_adaptation  # noqa: E402
 from vafn_sb3.common.adaptation_curves import (  # noqa: E402
     ADAPTATION_METRICS,
@@ -179,14 +180,6 @@ def summary_rows(curves: dict[str, dict[str, AdaptationCurve]]) -> list[dict]:
     return summary
 
 
-def write_csv(rows: list[dict], path: Path) -> None:
-    """One CSV row per dict (the first row's keys are the header)."""
-    with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-
-
 def support_episodes(args: argparse.Namespace, tasks: list) -> float:
     """Mean number of episodes (started) in a support set of ``--n-support`` steps, with the task's step budget."""
     env = gym.make(args.env, **args.env_kwargs)
@@ -268,8 +261,8 @@ def main(argv: list[str] | None = None) -> None:
     rows = evaluate_references(args, tasks) + kept + evaluate_methods(methods, args, tasks)
     curves = aggregate_adaptation(rows)
     summary = summary_rows(curves)
-    write_csv(rows, args.out / "adaptation.csv")
-    write_csv(summary, args.out / "adaptation_summary.csv")
+    write_csv_rows(rows, args.out / "adaptation.csv")
+    write_csv_rows(summary, args.out / "adaptation_summary.csv")
     episodes = support_episodes(args, tasks)
     meta = {"command": shlex.join(sys.argv), "title": args.title, "env": args.env, "env_kwargs": args.env_kwargs,
             "test_lengths": [args.min_length, args.max_length], "n_tasks": len(tasks), "benchmark_seed": benchmark.seed,

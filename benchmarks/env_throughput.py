@@ -11,7 +11,6 @@ Rounds alternate between envs so that machine load hits all of them alike; the b
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import re
 import time
@@ -25,6 +24,7 @@ import numpy as np  # noqa: E402
 
 import vafn_gym  # noqa: E402,F401
 from vafn_gym.constants import PHYSICS_DT  # noqa: E402
+from vafn_gym.files import write_csv_rows  # noqa: E402
 
 PANDA_SIM_TIME_PER_STEP = 0.04  # panda-gym: 20 substeps of 1/500 s
 PEER = "PandaReach-v3 (1 arm, 0.040 s/step)"
@@ -159,10 +159,7 @@ def main() -> None:
     if args.arms:
         rows += print_arm_table(best_of(arm_count_candidates(args.steps, args.arms), args.rounds), args.rounds)
     if args.csv:
-        with open(args.csv, "w", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
+        write_csv_rows(rows, args.csv)
 
 
 if __name__ == "__main__":

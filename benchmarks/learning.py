@@ -30,6 +30,7 @@ from tqdm import tqdm  # noqa: E402
 
 import vafn_gym  # noqa: E402,F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark, confidence_half_width, episode_rates  # noqa: E402
+from vafn_gym.files import write_csv_rows  # noqa: E402
 from zoo.hyperparams import load_hyperparams, load_training_env_kwargs  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 
@@ -125,12 +126,7 @@ def main() -> None:
             model.save(args.save / f"{name}_seed{seed}")
         # Re-read just before writing, so seeds run in parallel processes with --append all land in one file.
         rows = (read_curves(curves, exclude=args.seeds) if args.append and curves.is_file() else []) + own
-        partial = curves.with_name(f".{curves.name}.{os.getpid()}")
-        with partial.open("w", newline="") as handle:  # rewritten after every seed
-            writer = csv.DictWriter(handle, fieldnames=list(dict.fromkeys(k for r in rows for k in r)), restval="nan")
-            writer.writeheader()
-            writer.writerows(rows)
-        partial.replace(curves)
+        write_csv_rows(rows, curves, missing="nan")  # rewritten after every seed
     seeds = sorted({row["seed"] for row in rows})
     summary = {"algo": args.algo, "env": args.env, "env_kwargs": args.env_kwargs,
                "train_env_kwargs": training_env_kwargs(args),

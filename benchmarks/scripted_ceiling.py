@@ -10,7 +10,6 @@ difficulties), each run once with :func:`vafn_gym.run_episode`, so the numbers c
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import os
 import re
@@ -27,6 +26,7 @@ from vafn_gym import (  # noqa: E402
     ScriptedController,
     difficulty_of,
 )
+from vafn_gym.files import write_csv_rows  # noqa: E402
 
 Z_95 = 1.959963984540054
 
@@ -119,10 +119,7 @@ def main() -> None:
     for row in failures[:10]:
         print(f"  failed task {row['task_index']} ({row['task']}): collision={row['collision']}, steps={row['steps']}")
     if args.csv:
-        with open(args.csv, "w", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
+        write_csv_rows(rows, args.csv)
 
 
 if __name__ == "__main__":

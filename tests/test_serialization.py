@@ -93,6 +93,18 @@ def test_atomic_write_replaces_the_file_or_keeps_the_old_one(tmp_path):
     assert target.read_bytes() == b"new" and os.listdir(tmp_path) == ["file.bin"]
 
 
+def test_csv_rows_take_every_column_and_fill_the_missing_ones(tmp_path):
+    import csv
+
+    from vafn_gym.files import write_csv_rows
+
+    path = write_csv_rows([{"a": 1, "b": 2}, {"a": 3, "c": 4}], tmp_path / "sub" / "rows.csv", missing="nan")
+    assert list(csv.DictReader(path.open())) == [{"a": "1", "b": "2", "c": "nan"}, {"a": "3", "b": "nan", "c": "4"}]
+    with pytest.raises(ValueError, match="no rows"):
+        write_csv_rows([], tmp_path / "empty.csv")
+    assert not (tmp_path / "empty.csv").exists()
+
+
 @pytest.mark.parametrize("name", VAFN_ALGORITHMS)
 def test_a_save_that_fails_half_way_keeps_the_previous_model(name, env, tmp_path, monkeypatch):
     model = MODELS[name](env)

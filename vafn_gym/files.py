@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import csv
 import os
 import secrets
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 from pathlib import Path
 
 
@@ -32,3 +34,24 @@ def atomic_write(path: str | os.PathLike[str], write_fn: Callable[[Path], None])
         tmp.unlink(missing_ok=True)
         raise
     return path
+
+
+def write_csv_rows(rows: Sequence[Mapping[str, Any]], path: str | os.PathLike[str], missing: str = "") -> Path:
+    """Write dict rows as one CSV file, atomically; the header is every key in order of first appearance.
+
+    :param rows: the rows (at least one).
+    :param path: the CSV file; its folder is created if needed.
+    :param missing: written where a row lacks a column.
+    :return: ``path`` as a ``Path``.
+    """
+    if not rows:
+        raise ValueError(f"no rows to write to {path}")
+    columns = list(dict.fromkeys(key for row in rows for key in row))
+
+    def write(tmp: Path) -> None:
+        with tmp.open("w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=columns, restval=missing)
+            writer.writeheader()
+            writer.writerows(rows)
+
+    return atomic_write(path, write)

@@ -48,6 +48,7 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from vafn_gym.constants import SUCCESS_TOLERANCE  # noqa: E402
+from vafn_gym.files import write_csv_rows  # noqa: E402
 from zoo.study import BUDGETS, GOAL_ENV, HIDDEN_ENV, PANELS, Budget, Panel, StudyMethod  # noqa: E402
 
 #: Fig. 4's five phases, simple to complex (first and last as in the paper).
@@ -299,7 +300,7 @@ def fig4(budget: Budget, out: Path) -> dict[str, Any]:
                  + (f", adapted with K={k} at each boundary" if k else ""))
         plot_fig4(trace, title, out / f"fig4_online_{name}.png")
         if trace["log"]:
-            write_rows(trace["log"], out / f"fig4_online_{name}.csv")
+            write_csv_rows(trace["log"], out / f"fig4_online_{name}.csv")
         outcomes[name] = trace["log"]
     return outcomes
 
@@ -324,16 +325,6 @@ def _relative(path: Path) -> str:
         return str(Path(path).resolve().relative_to(REPO_ROOT))
     except ValueError:
         return str(path)
-
-
-def write_rows(rows: list[dict[str, Any]], path: Path) -> Path:
-    """Rows of dicts as CSV (columns from the first row)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    return path
 
 
 # --- SUMMARY.md ---
@@ -532,7 +523,7 @@ def main(argv: list[str] | None = None) -> Path:
     records = run_training(jobs, args.jobs)
     costs = training_costs(train_jobs(budget, PANELS, work))  # also the panels an earlier run here trained
     if costs:
-        write_rows(costs, out / "training_costs.csv")
+        write_csv_rows(costs, out / "training_costs.csv")
     times["train"] = time.perf_counter() - start
 
     start = time.perf_counter()
