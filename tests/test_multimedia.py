@@ -110,32 +110,6 @@ def test_heldout_split_uses_unseen_voices_and_glyphs():
     assert {item_spec(0, "heldout", i).voice.name for i in range(200)} <= set(HELDOUT_VOICES)
 
 
-def test_phrase_with_fluent_spellings():
-    from vafn_media.speech import phrase
-
-    assert phrase([1, 2, 3]) == "one two three"
-    assert phrase([2, 3, 1], 2, spellings=("tuh", "+thri", "one")) == "arm tuhthri, then one"
-    assert phrase([], 0, 1) == "nothing"
-    with pytest.raises(ValueError, match="spellings needs 2 entries"):
-        phrase([1, 2], spellings=("wun", "tuh", "thri"))
-
-
-def test_fluent_spellings_are_training_only_and_say_the_same_digits():
-    from vafn_media.dataset import item_spec
-    from vafn_media.speech import NUMBER_WORDS, PRONUNCIATIONS
-
-    spellings = [{NUMBER_WORDS[arm], *PRONUNCIATIONS[arm]} for arm in PRONUNCIATIONS]
-    assert sum(map(len, spellings)) == len(set().union(*spellings))  # no spelling names two digits
-    train = [item_spec(0, "train", i) for i in range(300)]
-    assert 0.2 < np.mean([bool(s.spellings) for s in train]) < 0.5
-    assert any(spelling.startswith("+") for s in train for spelling in s.spellings)  # some words glued
-    for spec in train:
-        for arm, spelling in zip(spec.arms, spec.spellings):
-            assert spelling.lstrip("+") in (NUMBER_WORDS[arm], *PRONUNCIATIONS[arm])
-    for split in ("test", "heldout"):
-        assert not any(item_spec(0, split, i).spellings for i in range(300))
-
-
 @needs_espeak
 def test_audio_generation_is_reproducible_in_fresh_processes():
     from vafn_media.dataset import generate_raw

@@ -47,7 +47,6 @@ class ItemSpec:
     empty_phrase: int
     image_seed: int
     heldout: bool
-    spellings: tuple[str, ...] = ()
 
 
 def item_spec(seed: int, split: str, index: int, difficulty: str | None = None) -> ItemSpec:
@@ -58,7 +57,7 @@ def item_spec(seed: int, split: str, index: int, difficulty: str | None = None) 
     :param index: item index.
     :param difficulty: restrict the length to a paper bucket ("easy", "medium", "hard"); None = uniform 0..10.
     """
-    from vafn_media.speech import EMPTY_PHRASES, TEMPLATES, sample_fluency, sample_voice
+    from vafn_media.speech import EMPTY_PHRASES, TEMPLATES, sample_voice
 
     if split not in SPLIT_CODES:
         raise ValueError(f"unknown split {split!r}; choose from {list(SPLIT_CODES)}")
@@ -69,10 +68,8 @@ def item_spec(seed: int, split: str, index: int, difficulty: str | None = None) 
     arms = tuple(int(a) for a in rng.integers(1, NUM_ARMS + 1, length))
     heldout = split == "heldout"
     voice = sample_voice(rng, heldout)
-    template, empty_phrase, image_seed = (int(rng.integers(len(TEMPLATES))), int(rng.integers(len(EMPTY_PHRASES))),
-                                          int(rng.integers(2**31)))
-    spellings = sample_fluency(rng, arms) if split == "train" else ()  # drawn last: the other fields do not change
-    return ItemSpec(arms, voice, template, empty_phrase, image_seed, heldout, spellings)
+    return ItemSpec(arms, voice, int(rng.integers(len(TEMPLATES))), int(rng.integers(len(EMPTY_PHRASES))),
+                    int(rng.integers(2**31)), heldout)
 
 
 def render_item(spec: ItemSpec) -> tuple[np.ndarray, np.ndarray]:
@@ -83,7 +80,7 @@ def render_item(spec: ItemSpec) -> tuple[np.ndarray, np.ndarray]:
     from vafn_media.speech import speak
     from vafn_media.strips import render_strip
 
-    waveform = speak(spec.arms, spec.voice, spec.template, spec.empty_phrase, spec.spellings)
+    waveform = speak(spec.arms, spec.voice, spec.template, spec.empty_phrase)
     image = render_strip(spec.arms, np.random.default_rng(spec.image_seed), heldout=spec.heldout)
     return waveform, image
 

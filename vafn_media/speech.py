@@ -34,11 +34,6 @@ TEMPLATES: tuple[tuple[str, str, str], ...] = (
     ("", ". ", "."),
     ("arm ", " and arm ", ""),
 )
-#: Training-only pronunciation variants of the number words, written as English spellings espeak-ng reads with its
-#: ordinary letter rules (its phoneme input crashes the library on some utterances): reduced vowels ("tuh" is a
-#: *two* said quickly), and forms that can be glued to a neighbour into one word ("wuntuh"), i.e. number words said
-#: without a word boundary, as fluent speakers and other speech engines do.
-PRONUNCIATIONS: dict[int, tuple[str, ...]] = {1: ("wun", "wan", "won"), 2: ("too", "tu", "tuh"), 3: ("thri", "thrih")}
 #: Phrasings of the empty instruction.
 EMPTY_PHRASES: tuple[str, ...] = ("none", "nothing", "no arms", "empty instruction", "hold", "stop")
 
@@ -64,11 +59,6 @@ RATE_RANGE: tuple[int, int] = (122, 262)
 PITCH_RANGE: tuple[int, int] = (10, 90)
 INTONATION_RANGE: tuple[int, int] = (5, 95)
 WORDGAP_RANGE: tuple[int, int] = (0, 15)
-#: Share of training utterances said fluently: each number word respelt (:data:`PRONUNCIATIONS`) with the first
-#: probability; two neighbouring respelt number words glued into one word (their separator dropped) with the second.
-FLUENT_UTTERANCE_PROBABILITY: float = 0.35
-RESPELL_PROBABILITY: float = 0.6
-GLUE_PROBABILITY: float = 0.5
 #: Sample rate espeak-ng synthesises at.
 ESPEAK_SAMPLE_RATE: int = 22_050
 #: Silence appended to every utterance: espeak-ng stops on the last sample of the last phoneme, which looks like a
@@ -84,47 +74,17 @@ _NOISE_SEED = 12345
 _PARAM_RATE, _PARAM_PITCH, _PARAM_RANGE, _PARAM_WORDGAP = 1, 3, 4, 7
 
 
-def phrase(arms: Sequence[int], template: int = 0, empty_phrase: int = 0, spellings: Sequence[str] = ()) -> str:
+def phrase(arms: Sequence[int], template: int = 0, empty_phrase: int = 0) -> str:
     """Text a user could say for ``arms`` (e.g. ``"arm two, then three"``).
 
     :param arms: 1-based arm ids.
     :param template: index into :data:`TEMPLATES` (non-empty instructions).
     :param empty_phrase: index into :data:`EMPTY_PHRASES` (empty instruction).
-    :param spellings: training only: how each number word is written (see :func:`sample_fluency`); a spelling that
-        starts with "+" is glued to the previous word.
     """
     if not arms:
         return EMPTY_PHRASES[empty_phrase % len(EMPTY_PHRASES)]
-    if spellings and len(spellings) != len(arms):
-        raise ValueError(f"spellings needs {len(arms)} entries for {len(arms)} arm ids, got {len(spellings)}")
-    spellings = tuple(spellings) or tuple(NUMBER_WORDS[arm] for arm in arms)
     prefix, separator, suffix = TEMPLATES[template % len(TEMPLATES)]
-    text = prefix
-    for k, spelling in enumerate(spellings):
-        text += spelling[1:] if spelling.startswith("+") else (separator if k else "") + spelling
-    return text + suffix
-
-
-def sample_fluency(rng: np.random.Generator, arms: Sequence[int]) -> tuple[str, ...]:
-    """Spellings of the number words of a fluently said training utterance; () (plain words) for most utterances.
-
-    :param rng: random generator.
-    :param arms: 1-based arm ids.
-    """
-    if not arms or rng.random() >= FLUENT_UTTERANCE_PROBABILITY:
-        return ()
-    respelt = rng.random(len(arms)) < RESPELL_PROBABILITY
-    variant = rng.integers(1 << 16, size=len(arms))
-    glue = rng.random(len(arms)) < GLUE_PROBABILITY
-    spellings: list[str] = []
-    for k, arm in enumerate(arms):
-        if not respelt[k]:
-            spellings.append(NUMBER_WORDS[arm])
-            continue
-        spelling = PRONUNCIATIONS[arm][variant[k] % len(PRONUNCIATIONS[arm])]
-        glued = k > 0 and respelt[k - 1] and glue[k]
-        spellings.append(("+" if glued else "") + spelling)
-    return tuple(spellings)
+    return prefix + separator.join(NUMBER_WORDS[arm] for arm in arms) + suffix
 
 
 @dataclass(frozen=True)
@@ -230,16 +190,13 @@ class EspeakSynthesizer:
         return np.concatenate(self._chunks).astype(np.float32) / 32768.0
 
 
-def speak(arms: Sequence[int], voice: Voice = Voice(), template: int = 0, empty_phrase: int = 0,
-          spellings: Sequence[str] = ()) -> np.ndarray:
+def speak(arms: Sequence[int], voice: Voice = Voice(), template: int = 0, empty_phrase: int = 0) -> np.ndarray:
     """Synthesise a spoken instruction at :data:`ESPEAK_SAMPLE_RATE` (float32), followed by a short silence.
 
     :param arms: 1-based arm ids.
     :param voice: espeak voice settings.
     :param template: phrasing template index.
     :param empty_phrase: phrasing of the empty instruction.
-    :param spellings: training-only spellings of the number words (see :func:`phrase`).
     """
-    text = phrase(arms, template, empty_phrase, spellings)
-    waveform = EspeakSynthesizer.shared().synthesize(text, voice)
+    waveform = EspeakSynthesizer.shared().synthesize(phrase(arms, template, empty_phrase), voice)
     return np.concatenate([waveform, np.zeros(int(TRAILING_SILENCE_SECONDS * ESPEAK_SAMPLE_RATE), np.float32)])
