@@ -6,8 +6,8 @@ import csv
 import os
 import secrets
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
 from pathlib import Path
+from typing import Any
 
 
 def atomic_write(path: str | os.PathLike[str], write_fn: Callable[[Path], None]) -> Path:
