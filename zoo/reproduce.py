@@ -49,7 +49,7 @@ from tqdm import tqdm  # noqa: E402
 
 from vafn_gym.constants import SUCCESS_TOLERANCE  # noqa: E402
 from vafn_gym.files import write_csv_rows  # noqa: E402
-from zoo.study import BUDGETS, GOAL_ENV, HIDDEN_ENV, PANELS, Budget, Panel, StudyMethod  # noqa: E402
+from zoo.study import BUDGETS, GOAL_ENV, HIDDEN_ENV, ORDER_ENV, PANELS, Budget, Panel, StudyMethod  # noqa: E402
 
 #: Fig. 4's five phases, simple to complex (first and last as in the paper).
 FIG4_PHASES = ("1,2,3", "3,1,2", "1,3,2,1", "3,2,1,3,2", "2,3,1,3,2,3")
@@ -57,6 +57,11 @@ FIG4_ENV = "VAFN/ThreeArmStream-v1"
 PAPER_FIG4 = "the online controller completes all five phases, each arm within tolerance of its target, no collisions."
 #: The paper's claim of each panel (by folder name), quoted in SUMMARY.md.
 PANEL_CLAIMS = {panel.name: panel.claim for panel in PANELS}
+
+
+def run_script(command: list[str], **kwargs: Any) -> subprocess.CompletedProcess:
+    """Run one of the repository's scripts from the repository root, single-threaded (every stage's processes)."""
+    return subprocess.run(command, cwd=REPO_ROOT, env={**os.environ, "OMP_NUM_THREADS": "1"}, **kwargs)
 
 
 # --- training: benchmarks/learning.py, one process per (method, seed) ---
@@ -135,8 +140,7 @@ def run_training(jobs: list[TrainJob], n_workers: int) -> list[dict[str, Any]]:
             job.model_dir.mkdir(parents=True, exist_ok=True)
             job.log_path.parent.mkdir(parents=True, exist_ok=True)
             with job.log_path.open("w") as log:
-                result = subprocess.run(job.command(), cwd=REPO_ROOT, stdout=log, stderr=subprocess.STDOUT,
-                                        env={**os.environ, "OMP_NUM_THREADS": "1"})
+                result = run_script(job.command(), stdout=log, stderr=subprocess.STDOUT)
             record["reused"] = False
             if result.returncode != 0 or not job.model_path.is_file():
                 record["error"] = f"exit {result.returncode}, see {job.log_path}"
@@ -155,12 +159,13 @@ def run_training(jobs: list[TrainJob], n_workers: int) -> list[dict[str, Any]]:
 
 def training_costs(jobs: list[TrainJob]) -> list[dict[str, Any]]:
     """Per job: env steps, wall and CPU seconds (training and its final check), success on the training env."""
+    curves: dict[Path, list[dict[str, str]]] = {}  # one file holds every seed of a method: read it once
+    for path in {job.curves_path for job in jobs if job.curves_path.is_file()}:
+        with path.open(newline="") as handle:
+            curves[path] = list(csv.DictReader(handle))
     rows = []
     for job in jobs:
-        if not job.curves_path.is_file():
-            continue
-        with job.curves_path.open(newline="") as handle:
-            final = [row for row in csv.DictReader(handle) if int(row["seed"]) == job.seed][-1:]
+        final = [row for row in curves.get(job.curves_path, []) if int(row["seed"]) == job.seed][-1:]
         rows += [{"panel": job.panel.name, "method": job.method.label, "algo": job.method.algo,
                   "env": job.method.train_env, "seed": job.seed, "timesteps": int(row["timesteps"]),
                   "wall_s": float(row["wall_s"]), "cpu_s": float(row["cpu_s"]),
@@ -205,8 +210,7 @@ def evaluate_panel(panel: Panel, budget: Budget, work: Path, out: Path, n_worker
                "--out", str(out / "adaptation" / panel.name), "--title", what]
     for method in fields:
         command += ["--method", *method]
-    result = subprocess.run(command, cwd=REPO_ROOT, capture_output=True, text=True,
-                            env={**os.environ, "OMP_NUM_THREADS": "1"})
+    result = run_script(command, capture_output=True, text=True)
     return {"ok": result.returncode == 0, "message": (result.stdout + result.stderr)[-2000:]}
 
 
@@ -290,7 +294,7 @@ def fig4(budget: Budget, out: Path) -> dict[str, Any]:
     runs: list[tuple[str, Any, int]] = [("scripted", ScriptedController.for_env(probe), 0)]
     probe.close()
     for algo, env_id in available_pretrained():
-        if env_id == "VAFN/ThreeArmReach-v1":  # the stream's world: default targets, inactive arms held
+        if env_id == ORDER_ENV:  # the stream's world: default targets, inactive arms held
             model = load_pretrained(algo, env_id)
             runs.insert(0, (algo, model, int(getattr(model, "inner_steps", 0))))
     outcomes = {}
@@ -313,8 +317,7 @@ def table1(budget: Budget, out: Path) -> dict[str, Any]:
     if not script.is_file():
         return {"ok": False, "stem": stem, "message": f"{script} not found (multimedia issue not landed)"}
     command = [sys.executable, str(script.relative_to(REPO_ROOT)), *budget.table1_args, "--out", _relative(stem)]
-    result = subprocess.run(command, cwd=REPO_ROOT, capture_output=True, text=True,
-                            env={**os.environ, "OMP_NUM_THREADS": "1"})
+    result = run_script(command, capture_output=True, text=True)
     message = (result.stdout + result.stderr)[-3000:]
     return {"ok": result.returncode == 0, "stem": stem, "message": message, "command": " ".join(command[1:])}
 
