@@ -207,7 +207,7 @@ def _reading(path, scale=1.0):
 
 
 def test_fusion_weighs_every_modalitys_evidence_and_calibrates():
-    from vafn_media.decoding import calibrated, fuse
+    from vafn_media.decoding import calibrated, fuse, reading_confidence
 
     assert calibrated(0.9, (1.0, 0.0)) == pytest.approx(0.9)
     assert calibrated(0.95, (1.0, -3.8)) < 0.5 < calibrated(0.9, (1.0, 1.3))
@@ -218,9 +218,42 @@ def test_fusion_weighs_every_modalitys_evidence_and_calibrates():
     assert fused.arms == [2, 3, 1] and fused.method == "rescored"
     calibration = {"audio": (1.0, 0.0), "image": (1.0, -6.0)}      # validation says: this image is rarely right
     capped = fuse({"audio": audio, "image": image}, None, None, calibration)
-    assert max(capped.confidences) <= calibrated(min(image.confidences + [image.weakest]), calibration["image"])
+    assert max(capped.confidences) <= calibrated(reading_confidence(image), calibration["image"])
     agree = fuse({"audio": _reading([0, 1, 0, 2]), "image": _reading([1, 0, 2, 0])}, None)
     assert agree.method == "agree" and agree.arms == [1, 2] and all(c > 0.99 for c in agree.confidences)
+
+
+def test_reading_confidence_is_the_weakest_token_not_a_noisy_pause():
+    from vafn_media.constants import BLANK, LATENT_DIM, VOCAB_SIZE
+    from vafn_media.decoding import greedy_decode, reading_confidence
+
+    sharp = _reading([0, 2, 0, 0, 3, 0])
+    logits = sharp.log_probs.clone()
+    logits[2, :] = -4.0
+    logits[2, BLANK], logits[2, 1] = 0.2, 0.0                      # a pause the model is unsure about
+    paused = greedy_decode(torch.zeros(6, LATENT_DIM), logits)
+    assert paused.arms == [2, 3] and paused.weakest < 0.6
+    assert reading_confidence(paused) == pytest.approx(min(paused.confidences)) and reading_confidence(paused) > 0.99
+    weak = _reading([0, 2, 0, 3, 0], scale=0.3)                    # uncertain tokens lower it
+    assert reading_confidence(weak) == pytest.approx(min(weak.confidences)) and reading_confidence(weak) < 0.9
+    all_blank = torch.zeros(3, VOCAB_SIZE).index_fill_(1, torch.tensor([BLANK]), 1.0)
+    empty = greedy_decode(torch.zeros(3, LATENT_DIM), all_blank)
+    assert empty.arms == [] and reading_confidence(empty) == pytest.approx(empty.weakest)
+
+
+def test_low_confidence_threshold_is_a_load_option(generator):
+    from vafn_gym.queue import InstructionQueue
+    from vafn_media import InstructionGenerator, MultimediaStream
+    from vafn_media.constants import LOW_CONFIDENCE
+
+    wave, rate = _espeak((2, 3, 1))
+    result = generator.transcribe(audio=(wave, rate))
+    assert generator.low_confidence == LOW_CONFIDENCE and result.arms == (2, 3, 1) and not result.low_confidence
+    assert LOW_CONFIDENCE <= result.confidence < 1.0
+    strict = InstructionGenerator.load(warm=False, low_confidence=1.0)
+    assert strict.transcribe(audio=(wave, rate)).low_confidence
+    assert MultimediaStream(InstructionQueue(), strict).min_confidence == 1.0         # the stream follows its generator
+    assert MultimediaStream(InstructionQueue(), strict, min_confidence=0.0).min_confidence == 0.0
 
 
 def test_fusion_calibration_never_lets_fusion_lose_to_the_better_modality():

@@ -107,8 +107,13 @@ def calibrated(confidence: float, platt: tuple[float, float] | None) -> float:
 
 
 def reading_confidence(reading: Decoded) -> float:
-    """Raw sequence confidence of a reading: its least certain decision (token or blank frame)."""
-    return float(min([reading.weakest] + list(reading.confidences)))
+    """Raw sequence confidence of a reading: its least certain token (the weakest decision when it read none).
+
+    Blank frames are left out on purpose: a noisy pause lowers their certainty on readings that are right, while a
+    voice the model never heard shows up as a weak *token*; with blank frames included, the confidence separated right
+    from wrong readings of an unseen speech engine much worse.
+    """
+    return float(min(reading.confidences)) if reading.confidences else float(reading.weakest)
 
 
 def fuse(readings: dict[str, Decoded], decoder: torch.nn.Module, weights: dict[str, float] | None = None,

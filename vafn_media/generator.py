@@ -26,7 +26,8 @@ class Transcription:
 
     :param instruction: the decoded instruction.
     :param confidences: per-token probability of each arm id (1.0 for machine code).
-    :param confidence: sequence confidence: the least certain decision of the reading (1.0 for machine code).
+    :param confidence: sequence confidence: for one modality the calibrated probability that the reading is right,
+        from its least certain token; for several, the least certain fused token (1.0 for machine code).
     :param low_confidence: True when ``confidence`` is below the threshold, the input had quality warnings (clipped,
         possibly cut off, a modality dropped), or the modalities disagreed on the sequence. Treat such a result as a
         guess; :class:`MultimediaStream` does not enqueue it.
@@ -84,11 +85,13 @@ class InstructionGenerator:
         self._audio_inference = AudioInference.build(self.model)
 
     @classmethod
-    def load(cls, path: str | os.PathLike | None = None, warm: bool = True) -> InstructionGenerator:
+    def load(cls, path: str | os.PathLike | None = None, warm: bool = True,
+             low_confidence: float = LOW_CONFIDENCE) -> InstructionGenerator:
         """Load a checkpoint (default: the packaged one); ``warm`` pays librosa's slow first call now.
 
         :param path: ``.pt`` file written by the training command (its ``.json`` metadata must sit beside it).
         :param warm: build the mel filterbanks of common sample rates and run one dummy pass per encoder.
+        :param low_confidence: threshold under which a result is flagged ``low_confidence``.
         """
         import torch
 
@@ -109,7 +112,7 @@ class InstructionGenerator:
         except Exception as error:  # noqa: BLE001 - torch/pickle/zip/JSON raise many types for a damaged file
             raise ValueError(f"checkpoint {checkpoint} (or its metadata {meta_path.name}) is corrupt or does not "
                              f"match the model: {type(error).__name__}: {str(error)[:200]}") from error
-        generator = cls(fold_batchnorm(model.eval()), metadata)
+        generator = cls(fold_batchnorm(model.eval()), metadata, low_confidence)
         if warm:
             generator.warm_up()
         return generator
@@ -199,7 +202,7 @@ class InstructionGenerator:
         :param code: machine code (``"2,3,1"``, ``"[2, 3, 1]"``, JSON, a list of arm ids or an Instruction).
         :param sample_rate: sample rate of a bare ``audio`` waveform.
         """
-        from vafn_media.decoding import calibrated, fuse
+        from vafn_media.decoding import calibrated, fuse, reading_confidence
 
         started = time.perf_counter()
         given = {
@@ -235,10 +238,11 @@ class InstructionGenerator:
         arms = fused.arms[:MAX_INSTRUCTION_LENGTH]
         if len(fused.arms) > MAX_INSTRUCTION_LENGTH:
             warnings.append(f"read {len(fused.arms)} arm ids; only the first {MAX_INSTRUCTION_LENGTH} are kept")
-        confidence = min([fused.weakest] + list(fused.confidences))
         if len(readings) == 1:
             only = next(iter(readings))
-            confidence = calibrated(confidence, self.confidence_calibration.get(only))
+            confidence = calibrated(reading_confidence(readings[only]), self.confidence_calibration.get(only))
+        else:
+            confidence = min(fused.confidences) if fused.confidences else fused.weakest
         low = confidence < self.low_confidence or bool(warnings)
         return Transcription(
             instruction=Instruction.from_arms(arms, n_arms=NUM_ARMS),

@@ -65,7 +65,8 @@ class MultimediaStream:
 
     :param instruction_queue: the destination ``vafn_gym.queue.InstructionQueue``.
     :param generator: the generator (default: the packaged checkpoint).
-    :param min_confidence: results with a lower sequence confidence are rejected (0 disables).
+    :param min_confidence: results with a lower sequence confidence are rejected (0 disables; default: the
+        generator's own ``low_confidence`` threshold, so a generator loaded with a looser one is not overruled).
     :param reject_flagged: also reject results the generator flagged ``low_confidence`` (warnings, disagreement);
         with False they are enqueued and the flag stays in the metadata.
     :param on_event: optional callback called (on the worker thread) with every :class:`StreamEvent`.
@@ -76,7 +77,7 @@ class MultimediaStream:
         self,
         instruction_queue: Any,
         generator: Any = None,
-        min_confidence: float = LOW_CONFIDENCE,
+        min_confidence: float | None = None,
         reject_flagged: bool = True,
         on_event: Callable[[StreamEvent], None] | None = None,
         max_pending: int = 256,
@@ -87,6 +88,8 @@ class MultimediaStream:
             generator = InstructionGenerator.load()
         self.queue = instruction_queue
         self.generator = generator
+        if min_confidence is None:
+            min_confidence = getattr(generator, "low_confidence", LOW_CONFIDENCE)
         self.min_confidence = float(min_confidence)
         self.reject_flagged = bool(reject_flagged)
         self.on_event = on_event
