@@ -65,7 +65,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         import torch
 
-        with _native_stderr_silenced():  # the generator imports vafn_gym (the instruction format), which imports PyBullet
+        with _native_stderr_silenced():  # the generator imports vafn_gym (instruction format), which imports PyBullet
             from vafn_media.generator import InstructionGenerator
 
         torch.set_num_threads(1)
