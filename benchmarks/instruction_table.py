@@ -165,9 +165,11 @@ def robust_section(generator, items_per_engine: int, seed: int = EVAL_SEED_BASE 
     engines = ["espeak"] + available_engines()
     lines = ["| Engine | Condition | Audio exact (%) | Audio per digit (%) | AV exact (%) | AV per digit (%) | "
              "Image exact (%) | Audio flagged (%) | Audio rejected (%) | Audio wrong & unflagged (%) | "
-             "AV wrong & unflagged (%) | Audio CPU (ms) | AV CPU (ms) |", "|" + "---|" * 13]
+             "Audio right but flagged (%) | AV wrong & unflagged (%) | Audio CPU (ms) | AV CPU (ms) |",
+             "|" + "---|" * 14]
     rows = [["engine", "condition", "audio_exact", "audio_digit", "av_exact", "av_digit", "image_exact",
-             "audio_flagged", "audio_rejected", "audio_wrong_unflagged", "av_wrong_unflagged", "audio_cpu_ms",
+             "audio_flagged", "audio_rejected", "audio_wrong_unflagged", "audio_right_flagged", "av_wrong_unflagged",
+             "audio_cpu_ms",
              "av_cpu_ms", "items"]]
     summary = {}
     for engine in engines:
@@ -181,16 +183,19 @@ def robust_section(generator, items_per_engine: int, seed: int = EVAL_SEED_BASE 
             summary[(engine, condition)] = (audio, av, image_exact)
             lines.append(f"| {engine} | {condition} | {audio['exact']:.1f} | {audio['digit']:.1f} | {av['exact']:.1f} "
                          f"| {av['digit']:.1f} | {image_exact:.1f} | {audio['flagged']:.1f} | {audio['rejected']:.1f} "
-                         f"| {audio['wrong_unflagged']:.1f} | {av['wrong_unflagged']:.1f} | {audio['cpu_ms']:.2f} "
+                         f"| {audio['wrong_unflagged']:.1f} | {audio['right_flagged']:.1f} "
+                         f"| {av['wrong_unflagged']:.1f} "
+                         f"| {audio['cpu_ms']:.2f} "
                          f"| {av['cpu_ms']:.2f} |")
             rows.append([engine, condition] + [f"{v:.2f}" for v in (
                 audio["exact"], audio["digit"], av["exact"], av["digit"], image_exact, audio["flagged"],
-                audio["rejected"], audio["wrong_unflagged"], av["wrong_unflagged"], audio["cpu_ms"], av["cpu_ms"])]
+                audio["rejected"], audio["wrong_unflagged"], audio["right_flagged"], av["wrong_unflagged"],
+                audio["cpu_ms"], av["cpu_ms"])]
                 + [len(items)])
         degraded = [summary[(engine, c)][0]["exact"] for c in CONDITIONS if c != "clean"]
         lines.append(f"| {engine} | **mean of degraded** | {np.mean(degraded):.1f} | | "
                      f"{np.mean([summary[(engine, c)][1]['exact'] for c in CONDITIONS if c != 'clean']):.1f} "
-                     "| | | | | | | | |")
+                     "| | | | | | | | | |")
     return lines, rows
 
 
@@ -202,8 +207,9 @@ def camera_section(generator, items_per_set: int, seed: int = EVAL_SEED_BASE + 6
     from vafn_media.evaluation import CAMERA_SETS, camera_cell, camera_items
 
     lines = ["| Glyphs | Condition | Image exact (%) | Image per digit (%) | Flagged (%) | Rejected (%) | "
-             "Wrong & unflagged (%) |", "|" + "---|" * 7]
-    rows = [["glyphs", "condition", "exact", "digit", "flagged", "rejected", "wrong_unflagged", "items"]]
+             "Wrong & unflagged (%) | Right but flagged (%) |", "|" + "---|" * 8]
+    rows = [["glyphs", "condition", "exact", "digit", "flagged", "rejected", "wrong_unflagged", "right_flagged",
+             "items"]]
     per_font: dict[str, dict[str, list[int]]] = {}
     for glyph_set in CAMERA_SETS:
         items = camera_items(glyph_set, items_per_set, seed)
@@ -212,14 +218,15 @@ def camera_section(generator, items_per_set: int, seed: int = EVAL_SEED_BASE + 6
             cell = camera_cell(generator.transcribe, items, condition, seed)
             exact.append(cell["exact"])
             lines.append(f"| {glyph_set} | {condition} | {cell['exact']:.1f} | {cell['digit']:.1f} | "
-                         f"{cell['flagged']:.1f} | {cell['rejected']:.1f} | {cell['wrong_unflagged']:.1f} |")
+                         f"{cell['flagged']:.1f} | {cell['rejected']:.1f} | {cell['wrong_unflagged']:.1f} | "
+                         f"{cell['right_flagged']:.1f} |")
             rows.append([glyph_set, condition] + [f"{cell[k]:.2f}" for k in (
-                "exact", "digit", "flagged", "rejected", "wrong_unflagged")] + [len(items)])
+                "exact", "digit", "flagged", "rejected", "wrong_unflagged", "right_flagged")] + [len(items)])
             if glyph_set.startswith("unseen"):
                 for font, (hits, count) in cell["per_font"].items():
                     per_font.setdefault(font, {})[condition] = [hits, count]
-        lines.append(f"| {glyph_set} | **mean of the 6 camera conditions** | **{np.mean(exact[1:]):.1f}** | | | | |")
-        rows.append([glyph_set, "mean of camera conditions", f"{np.mean(exact[1:]):.2f}", "", "", "", "",
+        lines.append(f"| {glyph_set} | **mean of the 6 camera conditions** | **{np.mean(exact[1:]):.1f}** | | | | | |")
+        rows.append([glyph_set, "mean of camera conditions", f"{np.mean(exact[1:]):.2f}", "", "", "", "", "",
                      len(items)])
     lines += ["", "Unseen TrueType fonts, one row per font (exact %, each font has 1/"
               f"{max(1, len(per_font))} of the cards):", "",

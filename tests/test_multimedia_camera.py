@@ -198,3 +198,7 @@ def test_benchmark_camera_section_runs_on_a_tiny_sample(load_benchmark):
     for row in rows[1:]:
         assert 0.0 <= float(row[2]) <= 100.0
     assert any("mean of the 6 camera conditions" in line for line in lines)
+    for row in rows[1:]:  # every flagged card is either a right one (a cost) or a wrong one caught
+        if row[1] in camera.CAMERA_CONDITIONS and not row[0].startswith("font:"):
+            exact, flagged, rejected, wrong_unflagged, right_flagged = (float(row[i]) for i in (2, 4, 5, 6, 7))
+            assert flagged == pytest.approx(right_flagged + (100.0 - exact - rejected - wrong_unflagged))

@@ -197,8 +197,9 @@ def robust_cell(transcribe: Callable[..., object], items: list[SpeechItem], cond
     """Accuracy of one (engine, condition) cell, audio alone or audio + the item's clean image.
 
     Returns exact-sequence accuracy, digit accuracy (1 - edit distance / reference digits), the share of results
-    flagged ``low_confidence``, of inputs rejected with ValueError, of *wrong and unflagged* results, and the mean
-    thread-CPU time per call. Each clip is made by :func:`degraded_clip`.
+    flagged ``low_confidence``, of inputs rejected with ValueError, of *wrong and unflagged* and of *right but
+    flagged* results (the two costs a flagging threshold trades), and the mean thread-CPU time per call. Each clip is
+    made by :func:`degraded_clip`.
 
     :param transcribe: ``InstructionGenerator.transcribe``.
     :param items: from :func:`speech_items`.
@@ -206,7 +207,7 @@ def robust_cell(transcribe: Callable[..., object], items: list[SpeechItem], cond
     :param seed: seed of the degradation noise and rooms.
     :param with_image: also give the clean image.
     """
-    exact, digits, total, flagged, rejected, silent_wrong, cpu = 0, 0, 0, 0, 0, 0, []
+    exact, digits, total, flagged, rejected, silent_wrong, right_flagged, cpu = 0, 0, 0, 0, 0, 0, 0, []
     for i, item in enumerate(items):
         kwargs = {"audio": degraded_clip(item, condition, seed, i)}
         if with_image:
@@ -227,9 +228,11 @@ def robust_cell(transcribe: Callable[..., object], items: list[SpeechItem], cond
         digits += min(len(item.arms), edit_distance(item.arms, read))
         flagged += bool(result.low_confidence)
         silent_wrong += read != item.arms and not result.low_confidence
+        right_flagged += read == item.arms and result.low_confidence
     n = max(1, len(items))
     return {"exact": 100.0 * exact / n, "digit": 100.0 * (1 - digits / max(1, total)), "flagged": 100.0 * flagged / n,
             "rejected": 100.0 * rejected / n, "wrong_unflagged": 100.0 * silent_wrong / n,
+            "right_flagged": 100.0 * right_flagged / n,
             "cpu_ms": 1000.0 * float(np.mean(cpu)) if cpu else 0.0}
 
 
@@ -276,8 +279,9 @@ def camera_cell(transcribe: Callable[..., object], items: list[CardItem], condit
                 seed: int) -> dict[str, object]:
     """Image-only accuracy of one (glyph set, camera condition) cell.
 
-    Returns exact-sequence and per-digit accuracy (%), the share flagged ``low_confidence`` and of wrong *and*
-    unflagged results, rejections (ValueError, counted wrong), and per-font exact-match counts.
+    Returns exact-sequence and per-digit accuracy (%), the share flagged ``low_confidence``, of wrong *and*
+    unflagged and of right *but* flagged results, rejections (ValueError, counted wrong), and per-font exact-match
+    counts.
 
     :param transcribe: ``InstructionGenerator.transcribe``.
     :param items: from :func:`camera_items`.
@@ -287,7 +291,7 @@ def camera_cell(transcribe: Callable[..., object], items: list[CardItem], condit
     from vafn_media.camera import CAMERA_CONDITIONS, apply_camera_condition
 
     code = CAMERA_CONDITIONS.index(condition)
-    exact, errors, total, flagged, rejected, silent_wrong = 0, 0, 0, 0, 0, 0
+    exact, errors, total, flagged, rejected, silent_wrong, right_flagged = 0, 0, 0, 0, 0, 0, 0
     per_font: dict[str, list[int]] = {}
     for i, item in enumerate(items):
         image = apply_camera_condition(item.ink, condition, np.random.default_rng([seed, i, code]))
@@ -310,7 +314,9 @@ def camera_cell(transcribe: Callable[..., object], items: list[CardItem], condit
         errors += min(len(item.arms), edit_distance(item.arms, read))
         flagged += bool(result.low_confidence)
         silent_wrong += (not hit) and not result.low_confidence
+        right_flagged += hit and result.low_confidence
     n = max(1, len(items))
     return {"exact": 100.0 * exact / n, "digit": 100.0 * (1 - errors / max(1, total)),
             "flagged": 100.0 * flagged / n, "rejected": 100.0 * rejected / n,
-            "wrong_unflagged": 100.0 * silent_wrong / n, "per_font": per_font}
+            "wrong_unflagged": 100.0 * silent_wrong / n, "right_flagged": 100.0 * right_flagged / n,
+            "per_font": per_font}
