@@ -87,3 +87,4 @@ def test_reproduce_smoke_writes_every_artefact(tmp_path: Path) -> None:
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     records = json.loads((out / "reproduce_smoke.json").read_text())["training"]
     assert records and all(record["reused"] for record in records), "--resume retrained"
+    assert "`python zoo/reproduce.py --smoke --panels order`" in (out / "SUMMARY.md").read_text()

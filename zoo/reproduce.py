@@ -422,7 +422,9 @@ def write_summary(out: Path, run: dict[str, Any] | None = None) -> Path:
                   "from the results in this folder; each panel names the command that produced it.", ""]
     else:
         budget = run["budget"]
-        lines += [f"Command: `python zoo/reproduce.py --{budget['name']}` · commit `{run['commit']}` · seeds "
+        ran = run.get("panels") or [p.name for p in PANELS]
+        only = f" --panels {' '.join(ran)}" if set(ran) != {p.name for p in PANELS} else ""
+        lines += [f"Command: `python zoo/reproduce.py --{budget['name']}{only}` · commit `{run['commit']}` · seeds "
                   f"{list(budget['seeds'])} · {budget['timesteps']} env steps per method and seed (equal budgets) · "
                   f"total wall time {run['times_s']['total'] / 60:.1f} min on {os.cpu_count()} cores (training "
                   f"{run['times_s']['train'] / 60:.1f}, evaluation {run['times_s']['evaluate'] / 60:.1f}, Fig. 4 "
