@@ -169,8 +169,7 @@ def robust_section(generator, items_per_engine: int, seed: int = EVAL_SEED_BASE 
              "|" + "---|" * 14]
     rows = [["engine", "condition", "audio_exact", "audio_digit", "av_exact", "av_digit", "image_exact",
              "audio_flagged", "audio_rejected", "audio_wrong_unflagged", "audio_right_flagged", "av_wrong_unflagged",
-             "audio_cpu_ms",
-             "av_cpu_ms", "items"]]
+             "audio_cpu_ms", "av_cpu_ms", "items"]]
     summary = {}
     for engine in engines:
         items = speech_items(engine, items_per_engine, seed)
@@ -184,9 +183,7 @@ def robust_section(generator, items_per_engine: int, seed: int = EVAL_SEED_BASE 
             lines.append(f"| {engine} | {condition} | {audio['exact']:.1f} | {audio['digit']:.1f} | {av['exact']:.1f} "
                          f"| {av['digit']:.1f} | {image_exact:.1f} | {audio['flagged']:.1f} | {audio['rejected']:.1f} "
                          f"| {audio['wrong_unflagged']:.1f} | {audio['right_flagged']:.1f} "
-                         f"| {av['wrong_unflagged']:.1f} "
-                         f"| {audio['cpu_ms']:.2f} "
-                         f"| {av['cpu_ms']:.2f} |")
+                         f"| {av['wrong_unflagged']:.1f} | {audio['cpu_ms']:.2f} | {av['cpu_ms']:.2f} |")
             rows.append([engine, condition] + [f"{v:.2f}" for v in (
                 audio["exact"], audio["digit"], av["exact"], av["digit"], image_exact, audio["flagged"],
                 audio["rejected"], audio["wrong_unflagged"], audio["right_flagged"], av["wrong_unflagged"],
