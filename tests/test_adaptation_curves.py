@@ -70,3 +70,25 @@ def test_plot_writes_a_png(tmp_path):
                            references=("ref",))
     assert path == tmp_path / "fig" / "curves.png"
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 10_000
+
+
+def test_zero_shot_panel_is_drawn_as_bars_with_their_intervals(tmp_path, monkeypatch):
+    from matplotlib.axes import Axes
+
+    bars = []
+    draw = Axes.bar
+
+    def record(self, x, height, **kwargs):
+        bars.append((x, height, kwargs))
+        return draw(self, x, height, **kwargs)
+
+    monkeypatch.setattr(Axes, "bar", record)
+    zero_shot = [r for r in hand_rows() if r["k"] == 0]
+    plot_adaptation(aggregate_adaptation(zero_shot), tmp_path / "bars.png", references=("ref",))
+    assert len(bars) == 3 * 2, "one bar per method and metric"
+    (_, _, reference), (_, height, method) = bars[:2]  # the success-rate panel
+    assert reference["hatch"] == "//" and reference["yerr"] is None                # the one-seed reference
+    assert height == pytest.approx(0.5) and np.ravel(method["yerr"]) == pytest.approx([0.5, 0.5])  # clipped to [0, 1]
+    bars.clear()
+    plot_adaptation(aggregate_adaptation(hand_rows()), tmp_path / "curves.png", references=("ref",))
+    assert not bars, "a panel over K stays a line plot"

@@ -102,6 +102,8 @@ def plot_adaptation(
     Methods with more than one K are lines with markers and a shaded 95 % interval (when they have several seeds).
     Methods evaluated at a single K, and the ``references`` (e.g. the scripted ceiling and the random floor), are
     horizontal lines at their first K's value across the K range: dashed for the references, dotted for the others.
+    When every method is evaluated at K = 0 only (a zero-shot panel), each metric is one bar per method with its
+    95 % interval instead, so that methods at the same value do not hide each other; references are hatched.
     """
     import matplotlib
 
@@ -118,7 +120,11 @@ def plot_adaptation(
         for index, (method, curve) in enumerate(curves.get(metric, {}).items()):
             style = {"color": colours(index % colours.N), "label": f"{method} (n={curve.n_seeds})"}
             band = curve.n_seeds > 1
-            if method in references or len(curve.k) == 1:
+            if k_max == 0:
+                error = [[curve.mean[0] - curve.low[0]], [curve.high[0] - curve.mean[0]]] if band else None
+                ax.bar(index, curve.mean[0], yerr=error, capsize=3, hatch="//" if method in references else None,
+                       edgecolor="black", linewidth=0.5, **style)
+            elif method in references or len(curve.k) == 1:
                 ax.plot(span, np.repeat(curve.mean[0], 2), ls="--" if method in references else ":", **style)
                 if band:
                     ax.fill_between(span, curve.low[0], curve.high[0], color=style["color"], alpha=0.15)
@@ -126,8 +132,13 @@ def plot_adaptation(
                 ax.plot(curve.k, curve.mean, marker="o", ms=3, **style)
                 if band:
                     ax.fill_between(curve.k, curve.low, curve.high, color=style["color"], alpha=0.15)
-        ax.set_xscale("symlog", linthresh=1)
-        ax.set_xlabel("adaptation steps K")
+        if k_max == 0:
+            ax.set_xticks(range(len(curves.get(metric, {}))), list(curves.get(metric, {})), rotation=45, ha="right",
+                          fontsize=7)
+            ax.set_xlabel("zero-shot (K = 0)")
+        else:
+            ax.set_xscale("symlog", linthresh=1)
+            ax.set_xlabel("adaptation steps K")
         ax.set_ylabel(label)
         if metric in RATE_METRICS:
             ax.set_ylim(-0.05, 1.05)
