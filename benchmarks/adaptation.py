@@ -197,8 +197,9 @@ def figure_title(meta: dict[str, Any]) -> str:
     """The figure's title from ``adaptation.json``: what the run is, the tasks, the support budget."""
     low, high = meta["test_lengths"]
     prefix = f"{meta['title']}\n" if meta.get("title") else ""
-    return (f"{prefix}{meta['env']}: {meta['n_tasks']} held-out test instructions of lengths {low}-{high}; support "
-            f"{meta['n_support_steps']} env steps (~{meta['support_episodes_mean']:.1f} episodes) per adaptation; "
+    support = (f"support {meta['n_support_steps']} env steps (~{meta['support_episodes_mean']:.1f} episodes) per "
+               "adaptation" if max(meta.get("k", [1])) > 0 else "no adaptation (K = 0)")
+    return (f"{prefix}{meta['env']}: {meta['n_tasks']} held-out test instructions of lengths {low}-{high}; {support}; "
             "mean over seeds ± 95 % CI")
 
 

@@ -49,6 +49,9 @@ def test_summary_is_written_from_a_results_folder(tmp_path: Path) -> None:
     entry = next(e for e in meta["summary"] if e["method"] == "goal_mappo_infer_probe")
     assert f"{entry['success_rate']:.2f} ± {entry['success_rate_ci95']:.2f}" in row
     assert "Best learned method" in summary and "Fig. 4" in summary
+    assert "lengths 1-10; no adaptation (K = 0);" in summary, "a K = 0 panel spends no support set"
+    shutil.copytree(REPO_ROOT / "results" / "adaptation" / "hidden", tmp_path / "adaptation" / "hidden")
+    assert "lengths 1-4; a support set of 400 env steps" in write_summary(tmp_path).read_text()
     with pytest.raises(SystemExit):
         reproduce_main(["--summary", "--out", str(REPO_ROOT / "results")])  # the committed folder needs a flag
 

@@ -358,8 +358,9 @@ def panel_section(folder: Path) -> list[str]:
     if folder.name in PANEL_CLAIMS:
         lines += [f"Paper / claim: {PANEL_CLAIMS[folder.name]}", ""]
     appended = " (the last of several `--append` runs; `adaptation.json` lists every method's models)"
-    lines += [f"{meta['n_tasks']} held-out test instructions of lengths {low}-{high}; a support set of "
-              f"{meta['n_support_steps']} env steps (~{meta['support_episodes_mean']:.1f} episodes) per task and K; "
+    support = (f"a support set of {meta['n_support_steps']} env steps (~{meta['support_episodes_mean']:.1f} "
+               "episodes) per task and K" if max(k_values) > 0 else "no adaptation (K = 0)")
+    lines += [f"{meta['n_tasks']} held-out test instructions of lengths {low}-{high}; {support}; "
               f"mean ± 95 % CI over seeds. Figure `{folder.name}/adaptation.png`; command "
               f"`python {meta['command']}`" + (appended if "--append" in meta["command"] else "") + ".", ""]
     # A method whose env shows it the targets the panel hides is a reference, not a contender.
