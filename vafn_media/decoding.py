@@ -106,7 +106,7 @@ def calibrated(confidence: float, platt: tuple[float, float] | None) -> float:
     return float(1.0 / (1.0 + np.exp(-z)))
 
 
-def reading_confidence(reading: Decoded) -> float:
+def reading_confidence(reading: Decoded | Fused) -> float:
     """Raw sequence confidence of a reading: its least certain token (the weakest decision when it read none).
 
     Blank frames are left out on purpose: a noisy pause lowers their certainty on readings that are right, while a

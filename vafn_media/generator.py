@@ -238,11 +238,9 @@ class InstructionGenerator:
         arms = fused.arms[:MAX_INSTRUCTION_LENGTH]
         if len(fused.arms) > MAX_INSTRUCTION_LENGTH:
             warnings.append(f"read {len(fused.arms)} arm ids; only the first {MAX_INSTRUCTION_LENGTH} are kept")
+        confidence = reading_confidence(fused)  # a single modality's fused reading is that reading itself
         if len(readings) == 1:
-            only = next(iter(readings))
-            confidence = calibrated(reading_confidence(readings[only]), self.confidence_calibration.get(only))
-        else:
-            confidence = min(fused.confidences) if fused.confidences else fused.weakest
+            confidence = calibrated(confidence, self.confidence_calibration.get(next(iter(readings))))
         low = confidence < self.low_confidence or bool(warnings)
         return Transcription(
             instruction=Instruction.from_arms(arms, n_arms=NUM_ARMS),
