@@ -65,6 +65,7 @@ from vafn_sb3.common.adaptation_curves import (  # noqa: E402
 from vafn_sb3.target_inference import INFERENCE_MODES, TargetInferencePolicy  # noqa: E402
 from vafn_sb3.loading import load_model  # noqa: E402
 from zoo.registry import register_algorithms  # noqa: E402
+from zoo.study import support_budget  # noqa: E402
 
 DEFAULT_K = [0, 1, 2, 5, 10, 20, 50]
 METRICS = tuple(ADAPTATION_METRICS)
@@ -197,8 +198,7 @@ def figure_title(meta: dict[str, Any]) -> str:
     """The figure's title from ``adaptation.json``: what the run is, the tasks, the support budget."""
     low, high = meta["test_lengths"]
     prefix = f"{meta['title']}\n" if meta.get("title") else ""
-    support = (f"support {meta['n_support_steps']} env steps (~{meta['support_episodes_mean']:.1f} episodes) per "
-               "adaptation" if max(meta.get("k", [1])) > 0 else "no adaptation (K = 0)")
+    support = support_budget(meta["n_support_steps"], meta["support_episodes_mean"], max(meta.get("k", [1])))
     return (f"{prefix}{meta['env']}: {meta['n_tasks']} held-out test instructions of lengths {low}-{high}; {support}; "
             "mean over seeds ± 95 % CI")
 

@@ -49,7 +49,17 @@ from tqdm import tqdm  # noqa: E402
 
 from vafn_gym.constants import SUCCESS_TOLERANCE  # noqa: E402
 from vafn_gym.files import write_csv_rows  # noqa: E402
-from zoo.study import BUDGETS, GOAL_ENV, HIDDEN_ENV, ORDER_ENV, PANELS, Budget, Panel, StudyMethod  # noqa: E402
+from zoo.study import (  # noqa: E402
+    BUDGETS,
+    GOAL_ENV,
+    HIDDEN_ENV,
+    ORDER_ENV,
+    PANELS,
+    Budget,
+    Panel,
+    StudyMethod,
+    support_budget,
+)
 
 #: Fig. 4's five phases, simple to complex (first and last as in the paper).
 FIG4_PHASES = ("1,2,3", "3,1,2", "1,3,2,1", "3,2,1,3,2", "2,3,1,3,2,3")
@@ -358,8 +368,7 @@ def panel_section(folder: Path) -> list[str]:
     if folder.name in PANEL_CLAIMS:
         lines += [f"Paper / claim: {PANEL_CLAIMS[folder.name]}", ""]
     appended = " (the last of several `--append` runs; `adaptation.json` lists every method's models)"
-    support = (f"a support set of {meta['n_support_steps']} env steps (~{meta['support_episodes_mean']:.1f} "
-               "episodes) per task and K" if max(k_values) > 0 else "no adaptation (K = 0)")
+    support = support_budget(meta["n_support_steps"], meta["support_episodes_mean"], max(k_values))
     lines += [f"{meta['n_tasks']} held-out test instructions of lengths {low}-{high}; {support}; "
               f"mean ± 95 % CI over seeds. Figure `{folder.name}/adaptation.png`; command "
               f"`python {meta['command']}`" + (appended if "--append" in meta["command"] else "") + ".", ""]
