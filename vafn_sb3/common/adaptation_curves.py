@@ -117,7 +117,8 @@ def plot_adaptation(
     fig, axes = plt.subplots(1, len(ADAPTATION_METRICS), figsize=(14, 4))
     colours = plt.get_cmap("tab10" if n_methods <= 10 else "tab20")  # one colour per method, never repeated
     for ax, (metric, label) in zip(axes, ADAPTATION_METRICS.items(), strict=True):
-        for index, (method, curve) in enumerate(curves.get(metric, {}).items()):
+        methods = curves.get(metric, {})
+        for index, (method, curve) in enumerate(methods.items()):
             style = {"color": colours(index % colours.N), "label": f"{method} (n={curve.n_seeds})"}
             band = curve.n_seeds > 1
             if k_max == 0:
@@ -133,8 +134,7 @@ def plot_adaptation(
                 if band:
                     ax.fill_between(curve.k, curve.low, curve.high, color=style["color"], alpha=0.15)
         if k_max == 0:
-            ax.set_xticks(range(len(curves.get(metric, {}))), list(curves.get(metric, {})), rotation=45, ha="right",
-                          fontsize=7)
+            ax.set_xticks(range(len(methods)), list(methods), rotation=45, ha="right", fontsize=7)
             ax.set_xlabel("zero-shot (K = 0)")
         else:
             ax.set_xscale("symlog", linthresh=1)
