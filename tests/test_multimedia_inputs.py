@@ -348,6 +348,14 @@ def test_cli_bad_inputs_exit_2_with_one_line(tmp_path):
     assert "corrupt" in _error_lines(_cli("--code", "1", "--checkpoint", str(bad_ckpt)))[0]
 
 
+def test_reading_an_instruction_never_loads_the_simulator():
+    code = ("import sys\nfrom vafn_media.cli import main\nrc = main(['--code', '2,3'])\n"
+            "print('PYBULLET' if 'pybullet' in sys.modules else 'NOPYBULLET')\nsys.exit(rc)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.splitlines()[-1] == "NOPYBULLET", (done.stdout, done.stderr)
+    assert done.stderr == "", done.stderr  # no simulator banner among the CLI's output
+
+
 def test_cli_empty_code_is_the_empty_instruction():
     done = _cli("--code", "", "--json")
     assert done.returncode == 0, done.stderr

@@ -21,8 +21,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pybullet as p
 from PIL import Image, ImageDraw, ImageFont
+
+from vafn_gym.sim.bullet import pybullet
 
 #: Vertical field of view, near and far planes of the render camera (as in :meth:`vafn_gym.sim.BulletSim.render`).
 CAMERA_FOV = 60.0
@@ -61,11 +62,12 @@ def arm_rgb(layout: Any, arm: int) -> tuple[int, int, int]:
 
 def project(points: np.ndarray, camera: Mapping[str, Any], width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """Pixel coordinates ``(N, 2)`` of world ``points`` ``(N, 3)`` seen by ``camera``, and which lie in front of it."""
-    view = np.array(p.computeViewMatrixFromYawPitchRoll(
+    view = np.array(pybullet().computeViewMatrixFromYawPitchRoll(
         [float(x) for x in camera["target"]], float(camera["distance"]), float(camera["yaw"]), float(camera["pitch"]),
         0.0, 2,
     )).reshape(4, 4).T
-    proj = np.array(p.computeProjectionMatrixFOV(CAMERA_FOV, width / height, CAMERA_NEAR, CAMERA_FAR)).reshape(4, 4).T
+    proj = pybullet().computeProjectionMatrixFOV(CAMERA_FOV, width / height, CAMERA_NEAR, CAMERA_FAR)
+    proj = np.array(proj).reshape(4, 4).T
     points = np.atleast_2d(np.asarray(points, dtype=float))
     clip = (proj @ view @ np.c_[points, np.ones(len(points))].T).T
     w = clip[:, 3]

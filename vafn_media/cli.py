@@ -4,11 +4,10 @@ print it with confidences."""
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from typing import NoReturn
 
 
@@ -31,20 +30,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-@contextlib.contextmanager
-def _native_stderr_silenced() -> Iterator[None]:
-    """Send file descriptor 2 to /dev/null: PyBullet's C code prints a build-time banner there when imported."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "w") as devnull:
-            os.dup2(devnull.fileno(), 2)
-            yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-
-
 def _fail(message: str) -> int:
     """Print one error line (newlines folded) and return exit code 2."""
     print("vafn-instruct: error: " + " ".join(str(message).split()), file=sys.stderr)
@@ -65,8 +50,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         import torch
 
-        with _native_stderr_silenced():  # the generator imports vafn_gym (instruction format), which imports PyBullet
-            from vafn_media.generator import InstructionGenerator
+        from vafn_media.generator import InstructionGenerator
 
         torch.set_num_threads(1)
         generator = InstructionGenerator.load(args.checkpoint)

@@ -2,16 +2,26 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import weakref
-from contextlib import contextmanager
 from collections.abc import Iterator
+from contextlib import contextmanager
+from types import ModuleType
 
 import numpy as np
-import pybullet as p
-import pybullet_data
 
 from vafn_gym.constants import N_SUBSTEPS, PHYSICS_DT, SOLVER_ITERATIONS
+
+
+@functools.cache
+def pybullet() -> ModuleType:
+    """The ``pybullet`` module, imported on first use."""
+    # Importing vafn_gym for its instruction format or queue (as vafn_media does) must not load the simulator and
+    # print its build banner.
+    import pybullet as module
+
+    return module
 
 
 def display_available() -> bool:
@@ -30,19 +40,22 @@ class BulletSim:
     def __init__(self, gui: bool = False, physics_dt: float = PHYSICS_DT, n_substeps: int = N_SUBSTEPS) -> None:
         if gui and not display_available():
             raise RuntimeError("render_mode='human' needs a display (DISPLAY is unset); use render_mode='rgb_array'")
-        self.client = p.connect(p.GUI if gui else p.DIRECT)
+        import pybullet_data
+
+        self._p = pybullet()
+        self.client = self._p.connect(self._p.GUI if gui else self._p.DIRECT)
         if self.client < 0:
             raise RuntimeError("could not connect to a PyBullet physics server")
         # An env dropped without close() must not keep its physics server (tens of MB each).
         self._finalizer = weakref.finalize(self, _disconnect, self.client)
         self.physics_dt = physics_dt
         self.n_substeps = n_substeps
-        p.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=self.client)
-        p.setTimeStep(physics_dt, physicsClientId=self.client)
-        p.setGravity(0, 0, -9.81, physicsClientId=self.client)
-        p.setPhysicsEngineParameter(numSolverIterations=SOLVER_ITERATIONS, physicsClientId=self.client)
+        self._p.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=self.client)
+        self._p.setTimeStep(physics_dt, physicsClientId=self.client)
+        self._p.setGravity(0, 0, -9.81, physicsClientId=self.client)
+        self._p.setPhysicsEngineParameter(numSolverIterations=SOLVER_ITERATIONS, physicsClientId=self.client)
         if gui:
-            p.configureDebugVisualizer(p.COV_ENABLE_GUI, 0, physicsClientId=self.client)
+            self._p.configureDebugVisualizer(self._p.COV_ENABLE_GUI, 0, physicsClientId=self.client)
 
     @property
     def dt(self) -> float:
@@ -52,65 +65,71 @@ class BulletSim:
     @contextmanager
     def no_rendering(self) -> Iterator[None]:
         """Pause GUI rendering while loading bodies (a no-op in DIRECT mode)."""
-        p.configureDebugVisualizer(p.COV_ENABLE_RENDERING, 0, physicsClientId=self.client)
+        self._p.configureDebugVisualizer(self._p.COV_ENABLE_RENDERING, 0, physicsClientId=self.client)
         try:
             yield
         finally:
-            p.configureDebugVisualizer(p.COV_ENABLE_RENDERING, 1, physicsClientId=self.client)
+            self._p.configureDebugVisualizer(self._p.COV_ENABLE_RENDERING, 1, physicsClientId=self.client)
 
     def load_urdf(self, path: str, position: np.ndarray, yaw: float = 0.0, fixed: bool = True) -> int:
         """Load a URDF from ``pybullet_data`` at ``position`` rotated by ``yaw``; returns the body id."""
-        orientation = p.getQuaternionFromEuler([0.0, 0.0, yaw])
-        return p.loadURDF(
+        orientation = self._p.getQuaternionFromEuler([0.0, 0.0, yaw])
+        return self._p.loadURDF(
             path, list(position), orientation, useFixedBase=fixed,
-            flags=p.URDF_ENABLE_CACHED_GRAPHICS_SHAPES, physicsClientId=self.client,
+            flags=self._p.URDF_ENABLE_CACHED_GRAPHICS_SHAPES, physicsClientId=self.client,
         )
 
     def create_marker(self, position: np.ndarray, radius: float, rgba: tuple[float, float, float, float]) -> int:
         """A ghost sphere (visual only, no collision) used to show targets."""
-        visual = p.createVisualShape(p.GEOM_SPHERE, radius=radius, rgbaColor=rgba, physicsClientId=self.client)
-        return p.createMultiBody(baseVisualShapeIndex=visual, basePosition=list(position), physicsClientId=self.client)
+        visual = self._p.createVisualShape(
+            self._p.GEOM_SPHERE, radius=radius, rgbaColor=rgba, physicsClientId=self.client
+        )
+        return self._p.createMultiBody(
+            baseVisualShapeIndex=visual, basePosition=list(position), physicsClientId=self.client
+        )
 
     def create_table_top(self, radius: float, rgba: tuple[float, float, float, float]) -> int:
         """A flat visual-only disc on the floor that marks the shared table."""
-        visual = p.createVisualShape(
-            p.GEOM_CYLINDER, radius=radius, length=0.002, rgbaColor=rgba, physicsClientId=self.client
+        visual = self._p.createVisualShape(
+            self._p.GEOM_CYLINDER, radius=radius, length=0.002, rgbaColor=rgba, physicsClientId=self.client
         )
-        return p.createMultiBody(baseVisualShapeIndex=visual, basePosition=[0, 0, 0.001], physicsClientId=self.client)
+        return self._p.createMultiBody(
+            baseVisualShapeIndex=visual, basePosition=[0, 0, 0.001], physicsClientId=self.client
+        )
 
     def move_marker(self, body: int, position: np.ndarray) -> None:
         """Teleport a marker body."""
-        p.resetBasePositionAndOrientation(body, list(position), [0, 0, 0, 1], physicsClientId=self.client)
+        self._p.resetBasePositionAndOrientation(body, list(position), [0, 0, 0, 1], physicsClientId=self.client)
 
     def step(self) -> None:
         """Advance the physics by ``n_substeps`` steps."""
         for _ in range(self.n_substeps):
-            p.stepSimulation(physicsClientId=self.client)
+            self._p.stepSimulation(physicsClientId=self.client)
 
     def link_position(self, body: int, link: int) -> np.ndarray:
         """World position of a link frame (computed forward kinematics)."""
-        state = p.getLinkState(body, link, computeForwardKinematics=True, physicsClientId=self.client)
+        state = self._p.getLinkState(body, link, computeForwardKinematics=True, physicsClientId=self.client)
         return np.array(state[4])
 
     def reset_joints(self, body: int, joints: list[int], angles: np.ndarray) -> None:
         """Teleport joints to ``angles`` with zero velocity."""
         for joint, angle in zip(joints, angles):
-            p.resetJointState(body, joint, float(angle), targetVelocity=0.0, physicsClientId=self.client)
+            self._p.resetJointState(body, joint, float(angle), targetVelocity=0.0, physicsClientId=self.client)
 
     def movable_joints(self, body: int) -> list[int]:
         """Indices of the non-fixed joints, in the order pybullet's IK reports them."""
-        n_joints = p.getNumJoints(body, physicsClientId=self.client)
-        infos = (p.getJointInfo(body, j, physicsClientId=self.client) for j in range(n_joints))
-        return [info[0] for info in infos if info[2] != p.JOINT_FIXED]
+        n_joints = self._p.getNumJoints(body, physicsClientId=self.client)
+        infos = (self._p.getJointInfo(body, j, physicsClientId=self.client) for j in range(n_joints))
+        return [info[0] for info in infos if info[2] != self._p.JOINT_FIXED]
 
     def joint_angles(self, body: int, joints: list[int]) -> np.ndarray:
         """Current joint angles."""
-        return np.array([state[0] for state in p.getJointStates(body, joints, physicsClientId=self.client)])
+        return np.array([state[0] for state in self._p.getJointStates(body, joints, physicsClientId=self.client)])
 
     def control_joints(self, body: int, joints: list[int], targets: np.ndarray, forces: np.ndarray) -> None:
         """Position-control ``joints`` toward ``targets`` with per-joint force limits."""
-        p.setJointMotorControlArray(
-            body, joints, p.POSITION_CONTROL, targetPositions=list(targets), forces=list(forces),
+        self._p.setJointMotorControlArray(
+            body, joints, self._p.POSITION_CONTROL, targetPositions=list(targets), forces=list(forces),
             physicsClientId=self.client,
         )
 
@@ -121,7 +140,7 @@ class BulletSim:
         """Position-only IK with null-space rest pose; returns joint angles."""
         lower, upper = limits
         return np.array(
-            p.calculateInverseKinematics(
+            self._p.calculateInverseKinematics(
                 body, link, list(position), lowerLimits=list(lower), upperLimits=list(upper),
                 jointRanges=list(upper - lower), restPoses=list(rest_pose), maxNumIterations=iterations,
                 residualThreshold=1e-4, physicsClientId=self.client,
@@ -130,27 +149,27 @@ class BulletSim:
 
     def joint_limits(self, body: int, joints: list[int]) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper joint limits from the URDF."""
-        infos = [p.getJointInfo(body, j, physicsClientId=self.client) for j in joints]
+        infos = [self._p.getJointInfo(body, j, physicsClientId=self.client) for j in joints]
         return np.array([i[8] for i in infos]), np.array([i[9] for i in infos])
 
     def contact_count(self, body_a: int, body_b: int) -> int:
         """Number of contact points between two bodies after the last step."""
-        return len(p.getContactPoints(body_a, body_b, physicsClientId=self.client))
+        return len(self._p.getContactPoints(body_a, body_b, physicsClientId=self.client))
 
     def closest_points_count(self, body_a: int, body_b: int, distance: float) -> int:
         """Number of point pairs between two bodies closer than ``distance`` (slow: use only for safety margins)."""
-        return len(p.getClosestPoints(body_a, body_b, distance, physicsClientId=self.client))
+        return len(self._p.getClosestPoints(body_a, body_b, distance, physicsClientId=self.client))
 
     def render(
         self, width: int, height: int, target: np.ndarray, distance: float, yaw: float, pitch: float
     ) -> np.ndarray:
         """An RGB frame (height, width, 3) uint8 from an orbit camera, TinyRenderer in DIRECT mode."""
-        view = p.computeViewMatrixFromYawPitchRoll(
+        view = self._p.computeViewMatrixFromYawPitchRoll(
             list(target), distance, yaw, pitch, 0, 2, physicsClientId=self.client
         )
-        proj = p.computeProjectionMatrixFOV(60, width / height, 0.05, 10.0, physicsClientId=self.client)
-        _, _, rgba, _, _ = p.getCameraImage(
-            width, height, view, proj, renderer=p.ER_TINY_RENDERER, shadow=0, physicsClientId=self.client,
+        proj = self._p.computeProjectionMatrixFOV(60, width / height, 0.05, 10.0, physicsClientId=self.client)
+        _, _, rgba, _, _ = self._p.getCameraImage(
+            width, height, view, proj, renderer=self._p.ER_TINY_RENDERER, shadow=0, physicsClientId=self.client,
         )
         return np.asarray(rgba, dtype=np.uint8).reshape(height, width, 4)[:, :, :3].copy()
 
@@ -161,6 +180,7 @@ class BulletSim:
 
 
 def _disconnect(client: int) -> None:
+    p = pybullet()
     try:
         p.disconnect(physicsClientId=client)
     except p.error:
