@@ -9,8 +9,9 @@ set: :func:`vafn_sb3.common.adaptation.evaluate_adaptation`) and runs the adapte
 that adapt inside the episode (a history of readings, ``--method ... '{"history": 4}'``) and methods evaluated
 zero-shot run at K = 0 only (``zero-shot`` as the fifth field). ``infer-probe`` runs a model trained with observed
 targets through :class:`vafn_sb3.target_inference.TargetInferencePolicy` (probe moves, then trilateration inside the
-episode; ``infer-passive``: without the probe moves; ``infer-none``: the centre of the shared region as every goal),
-also at K = 0 only. The scripted controller (the ceiling) and a uniform random policy (the floor) run on the same
+episode; ``infer-passive``: without the probe moves; ``infer-learned``: probe moves, then the network of
+``--target-estimator`` instead of trilateration; ``infer-none``: the centre of the shared region as every goal), also
+at K = 0 only. The scripted controller (the ceiling) and a uniform random policy (the floor) run on the same
 tasks.
 
 Writes to ``--out``: ``adaptation.csv`` (one row per method, seed, task and K), ``adaptation_summary.csv`` (per method
@@ -62,7 +63,7 @@ from vafn_sb3.common.adaptation_curves import (  # noqa: E402
     aggregate_adaptation,
     plot_adaptation,
 )
-from vafn_sb3.target_inference import INFERENCE_MODES, TargetInferencePolicy  # noqa: E402
+from vafn_sb3.target_inference import INFERENCE_MODES, LearnedTargetEstimator, TargetInferencePolicy  # noqa: E402
 from vafn_sb3.loading import load_model  # noqa: E402
 from zoo.registry import register_algorithms  # noqa: E402
 from zoo.study import support_budget  # noqa: E402
@@ -122,8 +123,9 @@ def evaluate_model(method: Method, path: Path, args: argparse.Namespace, tasks: 
     model, _ = load_model(path, method.algo)  # an SB3 zip or a packaged weights-only policy
     env_kwargs = {**args.env_kwargs, **method.env_kwargs}
     if method.target_inference is not None:
+        estimator = LearnedTargetEstimator.load(args.target_estimator) if method.target_inference == "learned" else None
         env = gym.make(args.env, **env_kwargs)
-        model = TargetInferencePolicy.for_env(model, env, inference=method.target_inference)
+        model = TargetInferencePolicy.for_env(model, env, inference=method.target_inference, estimator=estimator)
         env.close()
     rows = evaluate_adaptation(model, args.env, tasks, n_support=args.n_support,
                                k_values=[0] if method.zero_shot else args.k, n_eval_episodes=args.n_eval_episodes,
@@ -218,7 +220,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--env", default="VAFN/ThreeArmReachHidden-v1", help="env ID")
     parser.add_argument("--env-kwargs", type=json.loads, default={}, help="JSON kwargs of every method's env")
     parser.add_argument("--method", nargs="+", action="append", default=[], metavar="FIELD",
-                        help="LABEL ALGO GLOB [ENV_KWARGS_JSON] [zero-shot]; repeat for every method")
+                        help=f"LABEL ALGO GLOB [ENV_KWARGS_JSON] [{'|'.join(MODES)}]; repeat for every method")
+    parser.add_argument("--target-estimator", type=Path, default=None,
+                        help="LearnedTargetEstimator file of infer-learned methods (benchmarks/target_estimator.py)")
     parser.add_argument("--min-length", type=int, default=1, help="shortest test instruction")
     parser.add_argument("--max-length", type=int, default=4, help="longest test instruction")
     parser.add_argument("--n-tasks", type=int, default=30, help="held-out test instructions")
@@ -245,6 +249,10 @@ def main(argv: list[str] | None = None) -> None:
         return
     torch.set_num_threads(1)
     methods = [Method.parse(fields) for fields in args.method]
+    if any(m.target_inference == "learned" for m in methods) and args.target_estimator is None:
+        raise SystemExit("infer-learned methods need --target-estimator (a file of benchmarks/target_estimator.py)")
+    if args.target_estimator is not None:
+        LearnedTargetEstimator.load(args.target_estimator)  # a bad file fails here, not in every worker
     args.out.mkdir(parents=True, exist_ok=True)
     benchmark = InstructionBenchmark(args.env, args.min_length, args.max_length, n_test=args.n_tasks,
                                      env_kwargs=args.env_kwargs)
@@ -270,7 +278,9 @@ def main(argv: list[str] | None = None) -> None:
             "n_support_steps": args.n_support, "support_episodes_mean": episodes, "k": args.k,
             "methods": method_records + [{"label": m.label, "algo": m.algo, "models": [str(p) for p in m.paths],
                                           "env_kwargs": m.env_kwargs, "zero_shot": m.zero_shot,
-                                          "target_inference": m.target_inference} for m in methods],
+                                          "target_inference": m.target_inference,
+                                          **({"target_estimator": str(args.target_estimator)}
+                                             if m.target_inference == "learned" else {})} for m in methods],
             "eval_wall_s": round(time.perf_counter() - start, 1), "summary": summary}
     (args.out / "adaptation.json").write_text(json.dumps(meta, indent=2))
     title = figure_title(meta)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from vafn_sb3 import MTSAC, SAC
+from vafn_sb3 import MTSAC, SAC, LearnedTargetEstimator
 
 ROOT = Path(__file__).resolve().parents[1]
 HIDDEN = "VAFN/ThreeArmReachHidden-v1"
@@ -70,12 +70,14 @@ def test_study_end_to_end(study, tmp_path, monkeypatch, workers):
         tiny(MTSAC, {}, seed, models / f"mtsac_seed{seed}.zip")
     tiny(SAC, {"history": 2}, 0, models / "sac_seed0.zip")
     tiny(SAC, {"observe_goal": True}, 0, models / "goal_seed0.zip")
+    LearnedTargetEstimator(n_readings=4, hidden=(8,)).save(models / "estimator.pt")  # untrained: only the plumbing
     out = tmp_path / "out"
     argv = ["adaptation.py", "--max-length", "1", "--n-tasks", "2", "--k", "0", "1", "--n-support", "12",
             "--method", "mtsac", "mtsac", str(models / "mtsac_seed*.zip"),
             "--method", "history", "sac", str(models / "sac_seed*.zip"), '{"history": 2}', "zero-shot",
             "--method", "inferred", "sac", str(models / "goal_seed*.zip"), "infer-passive",
-            "--workers", str(workers), "--out", str(out)]
+            "--method", "learned", "sac", str(models / "goal_seed*.zip"), "infer-learned",
+            "--target-estimator", str(models / "estimator.pt"), "--workers", str(workers), "--out", str(out)]
     if workers == 1:
         monkeypatch.setattr(sys, "argv", argv)
         study["main"](argv[1:])
@@ -84,14 +86,25 @@ def test_study_end_to_end(study, tmp_path, monkeypatch, workers):
                        capture_output=True)
     with (out / "adaptation.csv").open() as handle:
         rows = list(csv.DictReader(handle))
-    methods = ("scripted", "random", "mtsac", "history", "inferred")
+    methods = ("scripted", "random", "mtsac", "history", "inferred", "learned")
     counts = {m: sum(1 for r in rows if r["method"] == m) for m in methods}
-    assert counts == {"scripted": 2, "random": 2, "mtsac": 2 * 2 * 2, "history": 2, "inferred": 2}
+    assert counts == {"scripted": 2, "random": 2, "mtsac": 2 * 2 * 2, "history": 2, "inferred": 2, "learned": 2}
     assert all(float(r["success_rate"]) == 1.0 for r in rows if r["method"] == "scripted")
     meta = json.loads((out / "adaptation.json").read_text())
     assert meta["n_support_steps"] == 12 and meta["support_episodes_mean"] == 1.0
     assert {(e["method"], e["k"]) for e in meta["summary"]} >= {("mtsac", 0), ("mtsac", 1), ("history", 0)}
     assert (out / "adaptation.png").stat().st_size > 0
+    assert [m.get("target_estimator") for m in meta["methods"]] == [None, None, None, str(models / "estimator.pt")]
+
+
+def test_learned_inference_needs_a_readable_estimator(study, tmp_path):
+    (tmp_path / "goal_seed0.zip").write_bytes(b"")
+    method = ["--method", "learned", "sac", str(tmp_path / "goal_seed*.zip"), "infer-learned"]
+    with pytest.raises(SystemExit, match="--target-estimator"):
+        study["main"]([*method, "--out", str(tmp_path / "out")])
+    (tmp_path / "estimator.pt").write_text("not an estimator")
+    with pytest.raises(ValueError, match="LearnedTargetEstimator.save"):
+        study["main"]([*method, "--target-estimator", str(tmp_path / "estimator.pt"), "--out", str(tmp_path / "out")])
 
 
 def test_append_keeps_other_methods_and_refuses_other_tasks(study, tmp_path, monkeypatch):

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import json
+
 import gymnasium as gym
 import numpy as np
 import pytest
 
 import vafn_gym  # noqa: F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark, ScriptedController, run_episode, trilaterate
-from vafn_sb3.target_inference import TargetInferencePolicy
+from vafn_gym.controllers import PROBE_DIRECTIONS
+from vafn_sb3.target_inference import LearnedTargetEstimator, TargetInferencePolicy, collect_waypoint_readings
 
 HIDDEN = "VAFN/ThreeArmReachHidden-v1"
 GOAL = "VAFN/ThreeArmReachGoal-v1"
@@ -108,3 +111,71 @@ def test_a_waiting_arm_gets_the_goal_the_env_would_have_shown(goal_oracle):
         expected = policy.homes[2] if waiting_goal == "home" else policy.priors[2]
         assert np.allclose(goal, expected, atol=1e-6), waiting_goal
         env.close()
+
+
+def synthetic_readings(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Four readings per row: a random start, then three noisy 1-3 cm probe moves; targets anywhere in a 60 cm box."""
+    rng = np.random.default_rng(seed)
+    steps = PROBE_DIRECTIONS[None] * rng.uniform(0.01, 0.03, (n, 3, 1)) + rng.normal(0.0, 0.002, (n, 3, 3))
+    starts = rng.uniform(-0.3, 0.3, (n, 1, 3))
+    points = np.concatenate([starts, starts + np.cumsum(steps, axis=1)], axis=1)
+    targets = rng.uniform(-0.3, 0.3, (n, 3))
+    return points, np.linalg.norm(points - targets[:, None], axis=2), targets
+
+
+def test_learned_estimator_learns_targets_from_readings_and_round_trips(tmp_path):
+    points, distances, targets = synthetic_readings(3000, seed=0)
+    estimator = LearnedTargetEstimator(n_readings=4, hidden=(64, 64), seed=0)
+    losses = estimator.fit(points[:2500], distances[:2500], targets[:2500], epochs=150, progress=False)
+    assert losses[-1] < 0.5 * losses[0]
+    errors = np.linalg.norm(estimator.predict(points[2500:], distances[2500:]) - targets[2500:], axis=1)
+    guess = np.linalg.norm(targets[:2500].mean(0) - targets[2500:], axis=1)  # the mean target, ignoring the readings
+    assert np.median(errors) < 0.5 * np.median(guess), (np.median(errors), np.median(guess))
+    assert estimator(list(points[0, :3]), list(distances[0, :3])) is None  # fewer readings than it reads
+    path = tmp_path / "estimator.pt"
+    estimator.save(path)
+    loaded = LearnedTargetEstimator.load(path)
+    assert loaded.n_readings == 4 and np.allclose(loaded(points[0], distances[0]), estimator(points[0], distances[0]))
+    path.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="LearnedTargetEstimator.save"):
+        LearnedTargetEstimator.load(path)
+    with pytest.raises(ValueError, match="at least 4"):
+        LearnedTargetEstimator(n_readings=3)
+
+
+def test_learned_inference_moves_as_probe_inference_and_collects_labelled_readings(goal_oracle):
+    env = gym.make(HIDDEN)
+    tasks = InstructionBenchmark(HIDDEN, 3, 4, n_test=4).test_tasks
+    with pytest.raises(ValueError, match="needs an estimator"):
+        TargetInferencePolicy.for_env(goal_oracle, env, inference="learned")
+    with pytest.raises(ValueError, match="only it takes one"):
+        TargetInferencePolicy.for_env(goal_oracle, env, estimator=trilaterate)
+
+    class Exact:  # the estimator a perfect network would be: trilateration of its first 6 readings
+        n_readings = 6
+
+        def __call__(self, points, distances):
+            return trilaterate(points[:6], distances[:6]) if len(points) >= 6 else None
+
+    learned = TargetInferencePolicy.for_env(goal_oracle, env, inference="learned", estimator=Exact())
+    assert success_rate(learned, env, tasks, goal_oracle) == 1.0
+    readings = collect_waypoint_readings(goal_oracle, env, tasks[:2], seed=0, n_readings=6, progress=False)
+    n = sum(len(task) for task in tasks[:2])
+    assert readings["points"].shape == (n, 6, 3) and readings["distances"].shape == (n, 6)
+    for points, distances, target in zip(readings["points"], readings["distances"], readings["targets"]):
+        assert np.allclose(np.linalg.norm(points - target, axis=1), distances, atol=1e-4)  # the label is the target
+    env.close()
+
+
+def test_target_estimator_benchmark_writes_estimators_and_errors(load_benchmark, tmp_path):
+    module = load_benchmark("target_estimator")
+    report = module.main(["--train-tasks", "3", "--test-tasks", "2", "--epochs", "2", "--hidden", "8",
+                          "--seeds", "0", "1", "--out", str(tmp_path)])
+    assert report["train_readings"] >= 3 and report["test_readings"] >= 2
+    # the labels are the targets the readings measure: trilateration of the same readings finds every one
+    assert report["trilateration"]["test"]["within_1cm"] == 1.0
+    assert set(report["learned"]) == {"0", "1"}
+    saved = json.loads((tmp_path / "target_estimator.json").read_text())
+    assert saved["learned"]["1"]["test"] == report["learned"]["1"]["test"]
+    estimator = LearnedTargetEstimator.load(tmp_path / "target_estimator_seed1.pt")
+    assert estimator.n_readings == report["n_readings"]

@@ -12,7 +12,7 @@ from vafn_sb3.mtsac import MTSAC
 from vafn_sb3.online import OnlineController
 from vafn_sb3.pretrained import available_pretrained, load_pretrained, pretrained_info
 from vafn_sb3.sac import SAC
-from vafn_sb3.target_inference import TargetInferencePolicy
+from vafn_sb3.target_inference import LearnedTargetEstimator, TargetInferencePolicy, collect_waypoint_readings
 
 __all__ = [
     "MAAC",
@@ -28,10 +28,12 @@ __all__ = [
     "SAC",
     "RolloutCollisionCallback",
     "SuccessCollisionEvalCallback",
+    "LearnedTargetEstimator",
     "TargetInferencePolicy",
     "aggregate_adaptation",
     "available_pretrained",
     "collect_support",
+    "collect_waypoint_readings",
     "evaluate_adaptation",
     "load_pretrained",
     "plot_adaptation",

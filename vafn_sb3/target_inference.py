@@ -7,16 +7,24 @@ moves (the scripted controller's), trilaterates the target from its own (positio
 on gives the learned policy the observation it was trained on, with the estimate as the goal (refined at every step).
 Two ablations: ``inference="passive"`` drops the probe moves (the policy heads for the centre of the shared region
 until its own readings span a volume), ``inference="none"`` never estimates (the goal stays the centre: the
-goal-observing policy with nothing inferred, this method's K = 0).
+goal-observing policy with nothing inferred, this method's K = 0). ``inference="learned"`` makes the probe moves but
+replaces trilateration by a :class:`LearnedTargetEstimator`: a network that maps the first four readings to the
+target, trained by regression on targets the training env knows (the privileged-information adaptation module of
+RMA), never told that the reading is ``|p - t|``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import pickle
+from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
+import torch
+from torch import nn
+from tqdm.auto import tqdm
 
 from vafn_gym.constants import (
     ACTION_PER_ARM,
@@ -35,10 +43,14 @@ from vafn_gym.constants import (
 from vafn_gym.controllers import PROBE_DIRECTIONS, trilaterate
 from vafn_gym.layout import ArmLayout
 
-__all__ = ["INFERENCE_MODES", "TargetInferencePolicy"]
+__all__ = ["ESTIMATOR_READINGS", "INFERENCE_MODES", "LearnedTargetEstimator", "TargetInferencePolicy",
+           "collect_waypoint_readings"]
 
-#: ``inference`` settings: probe moves then trilateration, trilateration of passive readings only, no inference.
-INFERENCE_MODES = ("probe", "passive", "none")
+#: ``inference`` settings: probe moves then trilateration, trilateration of passive readings only, probe moves then
+#: a :class:`LearnedTargetEstimator`, no inference.
+INFERENCE_MODES = ("probe", "passive", "learned", "none")
+#: Readings a :class:`LearnedTargetEstimator` reads by default: the waypoint's first ones, the probe moves' among them.
+ESTIMATOR_READINGS = 8
 
 #: Readings of one waypoint closer than this (metres) to the previous one are not recorded.
 MIN_SEPARATION = 1e-3
@@ -53,6 +65,8 @@ class TargetInferencePolicy:
     :param priors: each arm's goal before its target is estimated (e.g. the shared region's centre), same frame.
     :param inference: one of :data:`INFERENCE_MODES`.
     :param waiting_goal: the env's ``waiting_goal``: with "home" a waiting arm's goal is its home, as the model saw it.
+    :param estimator: the :class:`LearnedTargetEstimator` of ``inference="learned"`` (any callable from a
+        waypoint's readings so far, ``(points, distances)``, to a target or None).
     """
 
     def __init__(
@@ -62,6 +76,7 @@ class TargetInferencePolicy:
         priors: Mapping[int, np.ndarray],
         inference: str = "probe",
         waiting_goal: str = "target",
+        estimator: Any = None,
     ) -> None:
         self.model = model
         self.arm_ids = tuple(sorted(int(arm) for arm in homes))
@@ -78,12 +93,19 @@ class TargetInferencePolicy:
         self.priors = {arm: np.asarray(priors[arm], dtype=np.float64) for arm in self.arm_ids}
         if inference not in INFERENCE_MODES:
             raise ValueError(f"inference must be one of {INFERENCE_MODES}, got {inference!r}")
+        if (inference == "learned") != (estimator is not None):
+            raise ValueError("inference='learned' needs an estimator (a LearnedTargetEstimator), and only it takes one")
         self.inference = inference
+        self.estimator = estimator
+        #: Whether a newly active arm makes the probe moves.
+        self.probes = inference in ("probe", "learned")
         self.waiting_goal = waiting_goal
         self.reset()
 
     @classmethod
-    def for_env(cls, model: Any, env: gym.Env, inference: str = "probe") -> TargetInferencePolicy:
+    def for_env(
+        cls, model: Any, env: gym.Env, inference: str = "probe", estimator: Any = None
+    ) -> TargetInferencePolicy:
         """A policy for ``env`` (a hidden-target :class:`MultiArmEnv`, any wrapper, ``history=1``)."""
         base = env.unwrapped
         if base.observe_goal or base.history != 1:
@@ -94,7 +116,7 @@ class TargetInferencePolicy:
         centre = np.array([0.0, 0.0, float(np.mean(base.layout.shared_z_range))])
         homes = {arm: base.observed_point(arm, arm_obj.home) for arm, arm_obj in base.arms.items()}
         priors = {arm: base.observed_point(arm, centre) for arm in base.arms}
-        return cls(model, homes, priors, inference=inference, waiting_goal=base.waiting_goal)
+        return cls(model, homes, priors, inference=inference, waiting_goal=base.waiting_goal, estimator=estimator)
 
     def reset(self) -> None:
         """Forget every reading and estimate (call at every episode start; ``run_episode`` does)."""
@@ -109,6 +131,11 @@ class TargetInferencePolicy:
         """The active arm's current target estimate (observation frame), or None before the first trilateration."""
         return self._estimate
 
+    @property
+    def readings(self) -> tuple[int | None, list[np.ndarray], list[float]]:
+        """The active arm and its recorded (positions, distances) of the current waypoint (copies)."""
+        return self._active, [point.copy() for point in self._points], list(self._distances)
+
     def _record(self, active: int, position: np.ndarray, distance: float) -> None:
         # A new waypoint starts when the active arm changes or its distance jumps (the same arm reaching again).
         jumped = self._previous_distance is not None and distance > self._previous_distance + 2 * V_MAX * CONTROL_DT
@@ -120,7 +147,12 @@ class TargetInferencePolicy:
             return
         self._points.append(position.copy())
         self._distances.append(distance)
-        estimate = None if self.inference == "none" else trilaterate(self._points, self._distances)
+        if self.inference == "none":
+            estimate = None
+        elif self.inference == "learned":  # one estimate from the waypoint's first readings, not refined
+            estimate = self.estimator(self._points, self._distances) if self._estimate is None else None
+        else:
+            estimate = trilaterate(self._points, self._distances)
         if estimate is not None:
             self._estimate = estimate
 
@@ -155,7 +187,7 @@ class TargetInferencePolicy:
         action, _ = self.model.predict(self.goal_observation(obs), deterministic=deterministic)
         action = np.array(action, dtype=np.float32).reshape(-1)
         probe_index = len(self._points) - 1
-        probing = self.inference == "probe" and self._estimate is None and probe_index < len(PROBE_DIRECTIONS)
+        probing = self.probes and self._estimate is None and probe_index < len(PROBE_DIRECTIONS)
         if probing and active is not None:
             action[ArmLayout.block_slice(active, ACTION_PER_ARM)] = PROBE_DIRECTIONS[probe_index]
         return action
@@ -168,3 +200,150 @@ class TargetInferencePolicy:
         if obs.ndim != 1:
             raise ValueError(f"TargetInferencePolicy keeps per-episode readings: pass one observation, got {obs.shape}")
         return self.act(obs, deterministic=deterministic), None
+
+
+class LearnedTargetEstimator:
+    """A network from the first ``n_readings`` (position, distance) readings of a waypoint to its target.
+
+    Input: the later positions relative to the first, and the distances; output: the target relative to the first
+    position (so it is translation-invariant by construction, nothing else is assumed). Inputs and outputs are
+    standardised with the training set's statistics, which :meth:`fit` stores with the weights.
+
+    :param n_readings: readings it reads (at least 4: fewer cannot determine a point in space).
+    :param hidden: hidden layer sizes.
+    :param seed: seed of the initial weights.
+    """
+
+    def __init__(self, n_readings: int = ESTIMATOR_READINGS, hidden: Sequence[int] = (256, 256), seed: int = 0) -> None:
+        if n_readings < 4:
+            raise ValueError(f"n_readings must be at least 4 (a point in space needs four distances), got {n_readings}")
+        self.n_readings = int(n_readings)
+        self.hidden = tuple(int(size) for size in hidden)
+        n_in = 4 * self.n_readings - 3
+        sizes = [n_in, *self.hidden]
+        generator_state = torch.random.get_rng_state()
+        torch.manual_seed(seed)
+        layers: list[nn.Module] = []
+        for size_in, size_out in zip(sizes[:-1], sizes[1:]):
+            layers += [nn.Linear(size_in, size_out), nn.ReLU()]
+        self.net = nn.Sequential(*layers, nn.Linear(sizes[-1], 3))
+        torch.random.set_rng_state(generator_state)  # building an estimator leaves the caller's torch stream alone
+        self.stats = {"x_mean": np.zeros(n_in), "x_std": np.ones(n_in), "y_mean": np.zeros(3), "y_std": np.ones(3)}
+
+    @staticmethod
+    def features(points: np.ndarray, distances: np.ndarray) -> np.ndarray:
+        """Network inputs ``(..., 4 R - 3)`` of ``R`` readings: ``points (..., R, 3)``, ``distances (..., R)``."""
+        points, distances = np.asarray(points, dtype=np.float64), np.asarray(distances, dtype=np.float64)
+        offsets = points[..., 1:, :] - points[..., :1, :]
+        return np.concatenate([offsets.reshape(*offsets.shape[:-2], -1), distances], axis=-1)
+
+    def predict(self, points: np.ndarray, distances: np.ndarray) -> np.ndarray:
+        """Targets ``(N, 3)`` of a batch of readings ``points (N, R, 3)``, ``distances (N, R)`` (R = ``n_readings``)."""
+        x = (self.features(points, distances) - self.stats["x_mean"]) / self.stats["x_std"]
+        with torch.no_grad():
+            y = self.net(torch.as_tensor(x, dtype=torch.float32)).double().numpy()
+        return np.asarray(points, dtype=np.float64)[:, 0] + y * self.stats["y_std"] + self.stats["y_mean"]
+
+    def __call__(self, points: Sequence[np.ndarray], distances: Sequence[float]) -> np.ndarray | None:
+        """The target of one waypoint's readings (its first ``n_readings``), or None before that many."""
+        n = self.n_readings
+        if len(points) < n:
+            return None
+        return self.predict(np.asarray(points[:n])[None], np.asarray(distances[:n])[None])[0]
+
+    def fit(
+        self, points: np.ndarray, distances: np.ndarray, targets: np.ndarray, epochs: int = 200,
+        batch_size: int = 256, lr: float = 1e-3, seed: int = 0, progress: bool = True,
+    ) -> list[float]:
+        """Regress ``targets (N, 3)`` on readings ``points (N, R, 3)``, ``distances (N, R)``; mean loss per epoch."""
+        points, targets = np.asarray(points, dtype=np.float64), np.asarray(targets, dtype=np.float64)
+        points, distances = points[:, : self.n_readings], np.asarray(distances)[:, : self.n_readings]
+        if not (len(points) == len(distances) == len(targets)) or len(points) < 2:
+            raise ValueError(f"need as many readings as targets, at least 2: {len(points)}, {len(distances)}, "
+                             f"{len(targets)}")
+        x = self.features(points, distances)
+        y = targets - points[:, 0]
+        self.stats = {"x_mean": x.mean(0), "x_std": x.std(0) + 1e-8, "y_mean": y.mean(0), "y_std": y.std(0) + 1e-8}
+        x_t = torch.as_tensor((x - self.stats["x_mean"]) / self.stats["x_std"], dtype=torch.float32)
+        y_t = torch.as_tensor((y - self.stats["y_mean"]) / self.stats["y_std"], dtype=torch.float32)
+        optimizer = torch.optim.Adam(self.net.parameters(), lr=lr)
+        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=epochs)
+        generator = torch.Generator().manual_seed(seed)
+        losses = []
+        for _ in tqdm(range(epochs), desc="fitting the target estimator", disable=not progress):
+            total = 0.0
+            for batch in torch.randperm(len(x_t), generator=generator).split(batch_size):
+                loss = nn.functional.mse_loss(self.net(x_t[batch]), y_t[batch])
+                optimizer.zero_grad()
+                loss.backward()
+                optimizer.step()
+                total += loss.item() * len(batch)
+            schedule.step()
+            losses.append(total / len(x_t))
+        return losses
+
+    def save(self, path: str | Path) -> None:
+        """Weights, layer sizes and standardisation statistics in one ``torch.save`` file."""
+        torch.save({"n_readings": self.n_readings, "hidden": self.hidden, "state_dict": self.net.state_dict(),
+                    "stats": self.stats}, path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> LearnedTargetEstimator:
+        """An estimator saved by :meth:`save`."""
+        try:
+            saved = torch.load(path, map_location="cpu", weights_only=False)
+            estimator = cls(saved["n_readings"], saved["hidden"])
+            estimator.net.load_state_dict(saved["state_dict"])
+            estimator.stats = {key: np.asarray(value, dtype=np.float64) for key, value in saved["stats"].items()}
+        except (OSError, KeyError, TypeError, RuntimeError, EOFError, pickle.UnpicklingError) as error:
+            raise ValueError(f"{path} is not a file of LearnedTargetEstimator.save: {error}") from error
+        return estimator
+
+
+class _TrilaterationAfter:
+    """Trilateration withheld until ``n_readings`` readings: how ``inference="learned"`` moves, with exact estimates."""
+
+    def __init__(self, n_readings: int) -> None:
+        self.n_readings = n_readings
+
+    def __call__(self, points: Sequence[np.ndarray], distances: Sequence[float]) -> np.ndarray | None:
+        return trilaterate(points, distances) if len(points) >= self.n_readings else None
+
+
+def collect_waypoint_readings(
+    model: Any, env: gym.Env, tasks: Sequence[Any], seed: int, n_readings: int = ESTIMATOR_READINGS,
+    progress: bool = True,
+) -> dict[str, np.ndarray]:
+    """Each waypoint's first ``n_readings`` readings of ``model`` on hidden targets, with its true target (the label).
+
+    Runs one episode per task of ``tasks`` on ``env``: the goal-observing ``model`` through a
+    :class:`TargetInferencePolicy` that moves as ``inference="learned"`` does (probe moves, then the prior goal until
+    ``n_readings`` readings), so the readings are those an estimator will be given, and from then on toward the
+    trilaterated target. Each label is read from the env's task, which a deployed policy never sees.
+
+    :return: ``points (N, n_readings, 3)``, ``distances (N, n_readings)``, ``targets (N, 3)`` in the observation
+        frame, and ``arms (N,)``; a waypoint reached in fewer readings is left out.
+    """
+    policy = TargetInferencePolicy.for_env(model, env, inference="learned", estimator=_TrilaterationAfter(n_readings))
+    base = env.unwrapped
+    rows: dict[str, list] = {"points": [], "distances": [], "targets": [], "arms": []}
+    for index, task in enumerate(tqdm(tasks, desc="collecting readings", disable=not progress)):
+        base.set_task(task)
+        policy.reset()
+        obs, _ = env.reset(seed=seed + index)
+        recorded = None
+        done = False
+        while not done:
+            action, _ = policy.predict(obs)
+            active, points, distances = policy.readings
+            # the step that completes a waypoint's readings (a held arm may keep them at four for several steps)
+            waypoint = None if active is None else (active, points[0].tobytes() if points else None)
+            if len(points) == n_readings and waypoint != recorded:
+                recorded = waypoint
+                rows["points"].append(np.array(points))
+                rows["distances"].append(np.array(distances))
+                rows["targets"].append(base.observed_point(active, base.task.current_target(active)))
+                rows["arms"].append(active)
+            obs, _, terminated, truncated, _ = env.step(action)
+            done = terminated or truncated
+    return {key: np.array(value) for key, value in rows.items()}

@@ -38,7 +38,7 @@ from vafn_gym.queue import PoissonArrivals, ScheduledArrivals  # noqa: E402
 from vafn_sb3 import load_pretrained  # noqa: E402
 from vafn_sb3.loading import family_mismatch, load_model, training_env  # noqa: E402
 from vafn_sb3.online import OnlineController  # noqa: E402
-from vafn_sb3.target_inference import INFERENCE_MODES, TargetInferencePolicy  # noqa: E402
+from vafn_sb3.target_inference import INFERENCE_MODES, LearnedTargetEstimator, TargetInferencePolicy  # noqa: E402
 from zoo.plot import plot_online_distances  # noqa: E402
 
 
@@ -84,6 +84,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--infer-targets", choices=list(INFERENCE_MODES), default=None,
                         help="run a model trained with observed targets (observe_goal=True) on the stream's hidden "
                              "targets through TargetInferencePolicy with this inference setting")
+    parser.add_argument("--target-estimator", type=Path, default=None,
+                        help="LearnedTargetEstimator file for --infer-targets learned (benchmarks/target_estimator.py)")
     parser.add_argument("--n-support", type=int, default=25, help="support transitions per instruction (twin env)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the arrivals, support rollouts and env")
     parser.add_argument("--out", type=Path, default=Path("runs/online"),
@@ -123,7 +125,8 @@ def main(argv: list[str] | None = None) -> None:
         if args.policy is not None:
             parser.exit(2, "online_control.py: error: --infer-targets needs --model or --pretrained\n")
         try:
-            model = TargetInferencePolicy.for_env(model, env, inference=args.infer_targets)
+            estimator = None if args.target_estimator is None else LearnedTargetEstimator.load(args.target_estimator)
+            model = TargetInferencePolicy.for_env(model, env, inference=args.infer_targets, estimator=estimator)
         except ValueError as error:
             parser.exit(2, f"online_control.py: error: {error}\n")
     if args.policy is None:

@@ -1,0 +1,142 @@
+"""Learned target inference: train a LearnedTargetEstimator on hidden-target readings, measure it on held-out ones.
+
+    python benchmarks/target_estimator.py --train-tasks 3000 --seeds 0 1 2 --out runs/target_estimator
+
+A goal-observing policy (default: the packaged ``load_pretrained("mappo", env_id="VAFN/ThreeArmReachGoal-v1")``) runs
+on ``--train-tasks`` train-split instructions of the hidden-target env, moving as
+``TargetInferencePolicy(inference="learned")`` does (:func:`vafn_sb3.collect_waypoint_readings`); each waypoint's
+first ``--n-readings`` (position, distance) readings, labelled with the target the env knows, train one
+:class:`vafn_sb3.LearnedTargetEstimator` per seed (regression; it is never told that the reading is ``|p - t|``). The
+same collection on the benchmark's held-out test instructions measures the estimation error, beside trilateration of
+the same readings. Writes ``--out/target_estimator_seed<N>.pt`` (for ``benchmarks/adaptation.py --target-estimator``
+and ``zoo/online_control.py --infer-targets learned --target-estimator``) and ``--out/target_estimator.json`` (errors,
+sizes, CPU times, the command); prints a Markdown table. Never asserts a number.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO_ROOT))
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from vafn_gym import InstructionBenchmark, trilaterate  # noqa: E402
+from vafn_gym.constants import SUCCESS_TOLERANCE  # noqa: E402
+from vafn_sb3 import LearnedTargetEstimator, collect_waypoint_readings, load_pretrained  # noqa: E402
+from vafn_sb3.loading import load_model  # noqa: E402
+from vafn_sb3.target_inference import ESTIMATOR_READINGS  # noqa: E402
+from zoo.registry import register_algorithms  # noqa: E402
+
+#: Reset seeds of the collection episodes (train and test episodes never share one).
+TRAIN_EPISODE_SEED, TEST_EPISODE_SEED = 0, 500_000
+
+
+def error_stats(estimates: np.ndarray, targets: np.ndarray) -> dict[str, float]:
+    """Median, 90th percentile and maximum error (cm), and the shares within 1 cm and the success tolerance."""
+    errors = np.linalg.norm(estimates - targets, axis=1)
+    missing = np.isnan(errors)
+    errors = np.where(missing, np.inf, errors)  # no estimate counts as a miss
+    return {"median_cm": 100 * float(np.median(errors)), "p90_cm": 100 * float(np.percentile(errors, 90)),
+            "max_cm": 100 * float(errors.max()), "within_1cm": float((errors < 0.01).mean()),
+            "within_tolerance": float((errors < SUCCESS_TOLERANCE).mean()), "no_estimate": int(missing.sum())}
+
+
+def trilaterated(readings: dict[str, np.ndarray]) -> np.ndarray:
+    """Trilateration of every row's readings (NaN where the points span no volume)."""
+    rows = [trilaterate(list(points), list(distances)) for points, distances in
+            zip(readings["points"], readings["distances"])]
+    return np.array([np.full(3, np.nan) if row is None else row for row in rows])
+
+
+def goal_policy(args: argparse.Namespace) -> Any:
+    """The goal-observing model whose motion the readings come from."""
+    if args.model is None:
+        return load_pretrained("mappo", env_id="VAFN/ThreeArmReachGoal-v1")
+    register_algorithms()
+    return load_model(args.model, args.algo)[0]
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """Collect, fit one estimator per seed, measure on held-out readings; write the files, print the table."""
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    parser.add_argument("--env", default="VAFN/ThreeArmReachHidden-v1", help="hidden-target env ID")
+    parser.add_argument("--env-kwargs", type=json.loads, default={}, help="JSON kwargs of the env")
+    parser.add_argument("--model", type=Path, default=None,
+                        help="goal-observing model (None: the packaged goal-observing MAPPO)")
+    parser.add_argument("--algo", default=None, help="algorithm of --model (None: from its file)")
+    parser.add_argument("--train-tasks", type=int, default=3000, help="train-split instructions to collect on")
+    parser.add_argument("--test-tasks", type=int, default=100, help="held-out test instructions to measure on")
+    parser.add_argument("--max-length", type=int, default=4, help="longest instruction")
+    parser.add_argument("--n-readings", type=int, default=ESTIMATOR_READINGS, help="readings the estimator reads")
+    parser.add_argument("--hidden", type=int, nargs="+", default=[256, 256], help="hidden layer sizes")
+    parser.add_argument("--epochs", type=int, default=200, help="passes over the training readings")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="one estimator per seed (initial weights)")
+    parser.add_argument("--out", type=Path, default=Path("runs/target_estimator"), help="output folder")
+    args = parser.parse_args(argv)
+    if args.train_tasks < 1 or args.test_tasks < 1:
+        parser.error("--train-tasks and --test-tasks must be >= 1")
+    torch.set_num_threads(1)
+    args.out.mkdir(parents=True, exist_ok=True)
+
+    benchmark = InstructionBenchmark(args.env, max_length=args.max_length, n_test=args.test_tasks,
+                                     env_kwargs=args.env_kwargs, n_train=args.train_tasks)
+    env = benchmark.make_env()
+    try:
+        model = goal_policy(args)
+        start = time.process_time()
+        train = collect_waypoint_readings(model, env, benchmark.train_tasks, TRAIN_EPISODE_SEED, args.n_readings)
+        test = collect_waypoint_readings(model, env, benchmark.test_tasks, TEST_EPISODE_SEED, args.n_readings)
+        collect_cpu_s = time.process_time() - start
+    finally:
+        env.close()
+    report: dict[str, Any] = {
+        "command": shlex.join(sys.argv), "env": args.env, "env_kwargs": args.env_kwargs,
+        "model": str(args.model or "pretrained mappo (VAFN/ThreeArmReachGoal-v1)"), "max_length": args.max_length,
+        "train_tasks": args.train_tasks, "test_tasks": args.test_tasks, "train_readings": len(train["points"]),
+        "test_readings": len(test["points"]), "n_readings": args.n_readings, "hidden": args.hidden,
+        "epochs": args.epochs,
+        "collect_cpu_s": round(collect_cpu_s, 1),
+        "trilateration": {"train": error_stats(trilaterated(train), train["targets"]),
+                          "test": error_stats(trilaterated(test), test["targets"])},
+        "learned": {},
+    }
+    for seed in args.seeds:
+        estimator = LearnedTargetEstimator(args.n_readings, args.hidden, seed=seed)
+        start = time.process_time()
+        losses = estimator.fit(train["points"], train["distances"], train["targets"], epochs=args.epochs, seed=seed)
+        fit_cpu_s = time.process_time() - start
+        estimator.save(args.out / f"target_estimator_seed{seed}.pt")
+        report["learned"][str(seed)] = {
+            "train": error_stats(estimator.predict(train["points"], train["distances"]), train["targets"]),
+            "test": error_stats(estimator.predict(test["points"], test["distances"]), test["targets"]),
+            "final_loss": losses[-1], "fit_cpu_s": round(fit_cpu_s, 1),
+        }
+    (args.out / "target_estimator.json").write_text(json.dumps(report, indent=2))
+
+    print(f"{report['train_readings']} training waypoints ({args.train_tasks} train-split instructions), "
+          f"{report['test_readings']} held-out waypoints ({args.test_tasks} test instructions); errors in cm\n")
+    print("| estimator | split | median | 90th pct | max | within 1 cm | within the success tolerance |")
+    print("|---|---|---|---|---|---|---|")
+    rows = [("trilateration", report["trilateration"])]
+    rows += [(f"learned, seed {seed}", entry) for seed, entry in report["learned"].items()]
+    for name, entry in rows:
+        for split in ("train", "test"):
+            stats = entry[split]
+            print(f"| {name} | {split} | {stats['median_cm']:.2f} | {stats['p90_cm']:.2f} | {stats['max_cm']:.2f} "
+                  f"| {stats['within_1cm']:.3f} | {stats['within_tolerance']:.3f} |")
+    return report
+
+
+if __name__ == "__main__":
+    main()
