@@ -130,7 +130,7 @@ def test_learned_estimator_learns_targets_from_readings_and_round_trips(tmp_path
     assert losses[-1] < 0.5 * losses[0]
     errors = np.linalg.norm(estimator.predict(points[2500:], distances[2500:]) - targets[2500:], axis=1)
     guess = np.linalg.norm(targets[:2500].mean(0) - targets[2500:], axis=1)  # the mean target, ignoring the readings
-    assert np.median(errors) < 0.5 * np.median(guess), (np.median(errors), np.median(guess))
+    assert np.median(errors) < 0.3 * np.median(guess), (np.median(errors), np.median(guess))
     assert estimator(list(points[0, :3]), list(distances[0, :3])) is None  # fewer readings than it reads
     path = tmp_path / "estimator.pt"
     estimator.save(path)

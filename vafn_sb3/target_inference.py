@@ -205,8 +205,9 @@ class TargetInferencePolicy:
 class LearnedTargetEstimator:
     """A network from the first ``n_readings`` (position, distance) readings of a waypoint to its target.
 
-    Input: the later positions relative to the first, and the distances; output: the target relative to the first
-    position (so it is translation-invariant by construction, nothing else is assumed). Inputs and outputs are
+    Input: the later positions relative to the first, the later distances relative to the first, and the first
+    distance; output: the target relative to the first position (so it is translation-invariant by construction,
+    nothing else is assumed). Inputs and outputs are
     standardised with the training set's statistics, which :meth:`fit` stores with the weights.
 
     :param n_readings: readings it reads (at least 4: fewer cannot determine a point in space).
@@ -235,7 +236,9 @@ class LearnedTargetEstimator:
         """Network inputs ``(..., 4 R - 3)`` of ``R`` readings: ``points (..., R, 3)``, ``distances (..., R)``."""
         points, distances = np.asarray(points, dtype=np.float64), np.asarray(distances, dtype=np.float64)
         offsets = points[..., 1:, :] - points[..., :1, :]
-        return np.concatenate([offsets.reshape(*offsets.shape[:-2], -1), distances], axis=-1)
+        # changes of the reading, not readings: they are millimetres on a ~40 cm reading, lost in its scale otherwise
+        changes = distances[..., 1:] - distances[..., :1]
+        return np.concatenate([offsets.reshape(*offsets.shape[:-2], -1), changes, distances[..., :1]], axis=-1)
 
     def predict(self, points: np.ndarray, distances: np.ndarray) -> np.ndarray:
         """Targets ``(N, 3)`` of a batch of readings ``points (N, R, 3)``, ``distances (N, R)`` (R = ``n_readings``)."""
