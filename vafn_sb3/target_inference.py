@@ -8,8 +8,8 @@ on gives the learned policy the observation it was trained on, with the estimate
 Two ablations: ``inference="passive"`` drops the probe moves (the policy heads for the centre of the shared region
 until its own readings span a volume), ``inference="none"`` never estimates (the goal stays the centre: the
 goal-observing policy with nothing inferred, this method's K = 0). ``inference="learned"`` makes the probe moves but
-replaces trilateration by a :class:`LearnedTargetEstimator`: a network that maps the first four readings to the
-target, trained by regression on targets the training env knows (the privileged-information adaptation module of
+replaces trilateration by a :class:`LearnedTargetEstimator`: a network that maps the waypoint's first readings to
+the target, trained by regression on targets the training env knows (the privileged-information adaptation module of
 RMA), never told that the reading is ``|p - t|``.
 """
 
@@ -128,7 +128,7 @@ class TargetInferencePolicy:
 
     @property
     def estimate(self) -> np.ndarray | None:
-        """The active arm's current target estimate (observation frame), or None before the first trilateration."""
+        """The active arm's current target estimate (observation frame), or None before the first estimate."""
         return self._estimate
 
     @property
@@ -207,8 +207,8 @@ class LearnedTargetEstimator:
 
     Input: the later positions relative to the first, the later distances relative to the first, and the first
     distance; output: the target relative to the first position (so it is translation-invariant by construction,
-    nothing else is assumed). Inputs and outputs are
-    standardised with the training set's statistics, which :meth:`fit` stores with the weights.
+    nothing else is assumed). Inputs and outputs are standardised with the training set's statistics, which
+    :meth:`fit` stores with the weights.
 
     :param n_readings: readings it reads (at least 4: fewer cannot determine a point in space).
     :param hidden: hidden layer sizes.
@@ -339,9 +339,9 @@ def collect_waypoint_readings(
         while not done:
             action, _ = policy.predict(obs)
             active, points, distances = policy.readings
-            # the step that completes a waypoint's readings (a held arm may keep them at four for several steps)
-            waypoint = None if active is None else (active, points[0].tobytes() if points else None)
-            if len(points) == n_readings and waypoint != recorded:
+            # the step that completes a waypoint's readings (a held arm may keep them at n for several steps)
+            waypoint = (active, points[0].tobytes() if points else None)
+            if active is not None and len(points) == n_readings and waypoint != recorded:
                 recorded = waypoint
                 rows["points"].append(np.array(points))
                 rows["distances"].append(np.array(distances))
