@@ -1,6 +1,6 @@
 """Learned target inference: train a LearnedTargetEstimator on hidden-target readings, measure it on held-out ones.
 
-    python benchmarks/target_estimator.py --train-tasks 3000 --seeds 0 1 2 --out runs/target_estimator
+    python benchmarks/target_estimator.py --seeds 0 1 2 3 4 --out runs/target_estimator
 
 A goal-observing policy (default: the packaged ``load_pretrained("mappo", env_id="VAFN/ThreeArmReachGoal-v1")``) runs
 on ``--train-tasks`` train-split instructions of the hidden-target env, moving as
@@ -75,9 +75,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--model", type=Path, default=None,
                         help="goal-observing model (None: the packaged goal-observing MAPPO)")
     parser.add_argument("--algo", default=None, help="algorithm of --model (None: from its file)")
-    parser.add_argument("--train-tasks", type=int, default=3000, help="train-split instructions to collect on")
+    parser.add_argument("--train-tasks", type=int, default=1500, help="train-split instructions to collect on")
     parser.add_argument("--test-tasks", type=int, default=100, help="held-out test instructions to measure on")
-    parser.add_argument("--max-length", type=int, default=4, help="longest instruction")
+    parser.add_argument("--max-length", type=int, default=10,
+                        help="longest instruction (long ones give later waypoints, from arms that have moved a lot)")
     parser.add_argument("--n-readings", type=int, default=ESTIMATOR_READINGS, help="readings the estimator reads")
     parser.add_argument("--hidden", type=int, nargs="+", default=[256, 256], help="hidden layer sizes")
     parser.add_argument("--epochs", type=int, default=200, help="passes over the training readings")

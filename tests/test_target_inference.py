@@ -169,10 +169,10 @@ def test_learned_inference_moves_as_probe_inference_and_collects_labelled_readin
 
 def test_target_estimator_benchmark_writes_estimators_and_errors(load_benchmark, tmp_path):
     module = load_benchmark("target_estimator")
-    report = module.main(["--train-tasks", "3", "--test-tasks", "2", "--epochs", "2", "--hidden", "8",
-                          "--seeds", "0", "1", "--out", str(tmp_path)])
+    report = module.main(["--train-tasks", "3", "--test-tasks", "2", "--max-length", "3", "--epochs", "2",
+                          "--hidden", "8", "--n-readings", "8", "--seeds", "0", "1", "--out", str(tmp_path)])
     assert report["train_readings"] >= 3 and report["test_readings"] >= 2
-    # the labels are the targets the readings measure: trilateration of the same readings finds every one
+    # the labels are the targets the readings measure: trilateration of the same eight readings finds every one
     assert report["trilateration"]["test"]["within_1cm"] == 1.0
     assert set(report["learned"]) == {"0", "1"}
     saved = json.loads((tmp_path / "target_estimator.json").read_text())

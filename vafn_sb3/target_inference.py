@@ -49,8 +49,9 @@ __all__ = ["ESTIMATOR_READINGS", "INFERENCE_MODES", "LearnedTargetEstimator", "T
 #: ``inference`` settings: probe moves then trilateration, trilateration of passive readings only, probe moves then
 #: a :class:`LearnedTargetEstimator`, no inference.
 INFERENCE_MODES = ("probe", "passive", "learned", "none")
-#: Readings a :class:`LearnedTargetEstimator` reads by default: the waypoint's first ones, the probe moves' among them.
-ESTIMATOR_READINGS = 8
+#: Readings a :class:`LearnedTargetEstimator` reads by default: the first and one after each probe move, which do not
+#: depend on the policy it serves (later ones do: an estimator trained on them is tied to one policy).
+ESTIMATOR_READINGS = 4
 
 #: Readings of one waypoint closer than this (metres) to the previous one are not recorded.
 MIN_SEPARATION = 1e-3
