@@ -88,14 +88,19 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = parser.parse_args(argv)
     if args.train_tasks < 1 or args.test_tasks < 1:
         parser.error("--train-tasks and --test-tasks must be >= 1")
+    if args.n_readings < 4:
+        parser.error("--n-readings must be at least 4 (a point in space needs four distances)")
     torch.set_num_threads(1)
+    try:  # before the collection, so that a bad --model fails in seconds
+        model = goal_policy(args)
+    except (ValueError, FileNotFoundError) as error:
+        parser.error(f"--model: {error}")
     args.out.mkdir(parents=True, exist_ok=True)
 
     benchmark = InstructionBenchmark(args.env, max_length=args.max_length, n_test=args.test_tasks,
                                      env_kwargs=args.env_kwargs, n_train=args.train_tasks)
     env = benchmark.make_env()
     try:
-        model = goal_policy(args)
         start = time.process_time()
         train = collect_waypoint_readings(model, env, benchmark.train_tasks, TRAIN_EPISODE_SEED, args.n_readings)
         test = collect_waypoint_readings(model, env, benchmark.test_tasks, TEST_EPISODE_SEED, args.n_readings)

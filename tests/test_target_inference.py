@@ -179,3 +179,6 @@ def test_target_estimator_benchmark_writes_estimators_and_errors(load_benchmark,
     assert saved["learned"]["1"]["test"] == report["learned"]["1"]["test"]
     estimator = LearnedTargetEstimator.load(tmp_path / "target_estimator_seed1.pt")
     assert estimator.n_readings == report["n_readings"]
+    for bad in (["--model", str(tmp_path / "none.zip")], ["--n-readings", "3"]):  # fail before collecting
+        with pytest.raises(SystemExit):
+            module.main([*bad, "--out", str(tmp_path)])
