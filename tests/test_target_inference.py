@@ -7,6 +7,7 @@ import json
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 
 import vafn_gym  # noqa: F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark, ScriptedController, run_episode, trilaterate
@@ -137,6 +138,14 @@ def test_learned_estimator_learns_targets_from_readings_and_round_trips(tmp_path
     loaded = LearnedTargetEstimator.load(path)
     assert loaded.n_readings == 4 and np.allclose(loaded(points[0], distances[0]), estimator(points[0], distances[0]))
     path.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="LearnedTargetEstimator.save"):
+        LearnedTargetEstimator.load(path)
+
+    class Payload:  # a pickle that would run code when loaded without weights_only
+        def __reduce__(self):
+            return (exec, ("raise SystemExit('code ran')",))
+
+    torch.save({"n_readings": 4, "hidden": [8], "state_dict": {}, "stats": Payload()}, path)
     with pytest.raises(ValueError, match="LearnedTargetEstimator.save"):
         LearnedTargetEstimator.load(path)
     with pytest.raises(ValueError, match="at least 4"):

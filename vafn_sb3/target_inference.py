@@ -288,17 +288,18 @@ class LearnedTargetEstimator:
 
     def save(self, path: str | Path) -> None:
         """Weights, layer sizes and standardisation statistics in one ``torch.save`` file."""
-        torch.save({"n_readings": self.n_readings, "hidden": self.hidden, "state_dict": self.net.state_dict(),
-                    "stats": self.stats}, path)
+        stats = {key: torch.as_tensor(value, dtype=torch.float64) for key, value in self.stats.items()}
+        torch.save({"n_readings": self.n_readings, "hidden": list(self.hidden), "state_dict": self.net.state_dict(),
+                    "stats": stats}, path)
 
     @classmethod
     def load(cls, path: str | Path) -> LearnedTargetEstimator:
-        """An estimator saved by :meth:`save`."""
+        """An estimator saved by :meth:`save` (tensors and numbers only: a file carrying code is refused, not run)."""
         try:
-            saved = torch.load(path, map_location="cpu", weights_only=False)
+            saved = torch.load(path, map_location="cpu", weights_only=True)
             estimator = cls(saved["n_readings"], saved["hidden"])
             estimator.net.load_state_dict(saved["state_dict"])
-            estimator.stats = {key: np.asarray(value, dtype=np.float64) for key, value in saved["stats"].items()}
+            estimator.stats = {key: value.double().numpy() for key, value in saved["stats"].items()}
         except (OSError, KeyError, TypeError, RuntimeError, EOFError, pickle.UnpicklingError) as error:
             raise ValueError(f"{path} is not a file of LearnedTargetEstimator.save: {error}") from error
         return estimator
