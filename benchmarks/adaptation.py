@@ -252,7 +252,10 @@ def main(argv: list[str] | None = None) -> None:
     if any(m.target_inference == "learned" for m in methods) and args.target_estimator is None:
         raise SystemExit("infer-learned methods need --target-estimator (a file of benchmarks/target_estimator.py)")
     if args.target_estimator is not None:
-        LearnedTargetEstimator.load(args.target_estimator)  # a bad file fails here, not in every worker
+        try:  # a bad file fails here, in one line, not in every worker
+            LearnedTargetEstimator.load(args.target_estimator)
+        except ValueError as error:
+            raise SystemExit(f"--target-estimator: {error}") from None
     args.out.mkdir(parents=True, exist_ok=True)
     benchmark = InstructionBenchmark(args.env, args.min_length, args.max_length, n_test=args.n_tasks,
                                      env_kwargs=args.env_kwargs)

@@ -103,7 +103,7 @@ def test_learned_inference_needs_a_readable_estimator(study, tmp_path):
     with pytest.raises(SystemExit, match="--target-estimator"):
         study["main"]([*method, "--out", str(tmp_path / "out")])
     (tmp_path / "estimator.pt").write_text("not an estimator")
-    with pytest.raises(ValueError, match="LearnedTargetEstimator.save"):
+    with pytest.raises(SystemExit, match="LearnedTargetEstimator.save"):
         study["main"]([*method, "--target-estimator", str(tmp_path / "estimator.pt"), "--out", str(tmp_path / "out")])
 
 
