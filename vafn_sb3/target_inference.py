@@ -223,13 +223,12 @@ class LearnedTargetEstimator:
         self.hidden = tuple(int(size) for size in hidden)
         n_in = 4 * self.n_readings - 3
         sizes = [n_in, *self.hidden]
-        generator_state = torch.random.get_rng_state()
-        torch.manual_seed(seed)
-        layers: list[nn.Module] = []
-        for size_in, size_out in zip(sizes[:-1], sizes[1:]):
-            layers += [nn.Linear(size_in, size_out), nn.ReLU()]
-        self.net = nn.Sequential(*layers, nn.Linear(sizes[-1], 3))
-        torch.random.set_rng_state(generator_state)  # building an estimator leaves the caller's torch stream alone
+        with torch.random.fork_rng():  # building an estimator leaves the caller's torch stream alone
+            torch.manual_seed(seed)
+            layers: list[nn.Module] = []
+            for size_in, size_out in zip(sizes[:-1], sizes[1:]):
+                layers += [nn.Linear(size_in, size_out), nn.ReLU()]
+            self.net = nn.Sequential(*layers, nn.Linear(sizes[-1], 3))
         self.stats = {"x_mean": np.zeros(n_in), "x_std": np.ones(n_in), "y_mean": np.zeros(3), "y_std": np.ones(3)}
 
     @staticmethod
@@ -306,12 +305,19 @@ class LearnedTargetEstimator:
 
 
 class _TrilaterationAfter:
-    """Trilateration withheld until ``n_readings`` readings: how ``inference="learned"`` moves, with exact estimates."""
+    """Trilateration withheld until ``n_readings`` readings: how ``inference="learned"`` moves, with exact estimates.
+
+    It keeps every waypoint's first ``n_readings`` readings: the policy asks it once per new reading while it has no
+    estimate, so it sees exactly ``n_readings`` readings once per waypoint.
+    """
 
     def __init__(self, n_readings: int) -> None:
         self.n_readings = n_readings
+        self.first_readings: list[tuple[np.ndarray, np.ndarray]] = []
 
     def __call__(self, points: Sequence[np.ndarray], distances: Sequence[float]) -> np.ndarray | None:
+        if len(points) == self.n_readings:
+            self.first_readings.append((np.array(points), np.array(distances)))
         return trilaterate(points, distances) if len(points) >= self.n_readings else None
 
 
@@ -329,26 +335,24 @@ def collect_waypoint_readings(
     :return: ``points (N, n_readings, 3)``, ``distances (N, n_readings)``, ``targets (N, 3)`` in the observation
         frame, and ``arms (N,)``; a waypoint reached in fewer readings is left out.
     """
-    policy = TargetInferencePolicy.for_env(model, env, inference="learned", estimator=_TrilaterationAfter(n_readings))
+    estimator = _TrilaterationAfter(n_readings)
+    policy = TargetInferencePolicy.for_env(model, env, inference="learned", estimator=estimator)
     base = env.unwrapped
-    rows: dict[str, list] = {"points": [], "distances": [], "targets": [], "arms": []}
+    targets, arms = [], []
     for index, task in enumerate(tqdm(tasks, desc="collecting readings", disable=not progress)):
         base.set_task(task)
         policy.reset()
         obs, _ = env.reset(seed=seed + index)
-        recorded = None
         done = False
         while not done:
+            n_waypoints = len(estimator.first_readings)
             action, _ = policy.predict(obs)
-            active, points, distances = policy.readings
-            # the step that completes a waypoint's readings (a held arm may keep them at n for several steps)
-            waypoint = (active, points[0].tobytes() if points else None)
-            if active is not None and len(points) == n_readings and waypoint != recorded:
-                recorded = waypoint
-                rows["points"].append(np.array(points))
-                rows["distances"].append(np.array(distances))
-                rows["targets"].append(base.observed_point(active, base.task.current_target(active)))
-                rows["arms"].append(active)
+            if len(estimator.first_readings) > n_waypoints:  # this step completed a waypoint's readings: label them
+                active = policy.readings[0]
+                targets.append(base.observed_point(active, base.task.current_target(active)))
+                arms.append(active)
             obs, _, terminated, truncated, _ = env.step(action)
             done = terminated or truncated
-    return {key: np.array(value) for key, value in rows.items()}
+    points, distances = zip(*estimator.first_readings) if targets else ((), ())
+    return {"points": np.array(points), "distances": np.array(distances), "targets": np.array(targets),
+            "arms": np.array(arms)}
