@@ -29,7 +29,8 @@ setup(
     packages=find_packages(include=["vafn_gym", "vafn_gym.*", "vafn_sb3", "vafn_sb3.*", "vafn_media", "vafn_media.*"]),
     package_data={
         "vafn_media": ["checkpoints/*.pt", "checkpoints/*.json"],
-        "vafn_sb3": ["pretrained/*.zip", "pretrained/*.json"],
+        "vafn_sb3": ["pretrained/*.zip", "pretrained/*.json", "pretrained/estimators/*.pt",
+                     "pretrained/estimators/*.json"],
     },
     python_requires=">=3.10",
     install_requires=[

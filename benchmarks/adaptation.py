@@ -10,7 +10,7 @@ that adapt inside the episode (a history of readings, ``--method ... '{"history"
 zero-shot run at K = 0 only (``zero-shot`` as the fifth field). ``infer-probe`` runs a model trained with observed
 targets through :class:`vafn_sb3.target_inference.TargetInferencePolicy` (probe moves, then trilateration inside the
 episode; ``infer-passive``: without the probe moves; ``infer-learned``: probe moves, then the network of
-``--target-estimator`` instead of trilateration; ``infer-none``: the centre of the shared region as every goal), also
+``--target-estimator`` (default: the packaged one) instead of trilateration; ``infer-none``: the centre of the shared region as every goal), also
 at K = 0 only. The scripted controller (the ceiling) and a uniform random policy (the floor) run on the same
 tasks.
 
@@ -222,7 +222,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--method", nargs="+", action="append", default=[], metavar="FIELD",
                         help=f"LABEL ALGO GLOB [ENV_KWARGS_JSON] [{'|'.join(MODES)}]; repeat for every method")
     parser.add_argument("--target-estimator", type=Path, default=None,
-                        help="LearnedTargetEstimator file of infer-learned methods (benchmarks/target_estimator.py)")
+                        help="LearnedTargetEstimator file of infer-learned methods (benchmarks/target_estimator.py; "
+                             "None: the packaged estimator)")
     parser.add_argument("--min-length", type=int, default=1, help="shortest test instruction")
     parser.add_argument("--max-length", type=int, default=4, help="longest test instruction")
     parser.add_argument("--n-tasks", type=int, default=30, help="held-out test instructions")
@@ -249,9 +250,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     torch.set_num_threads(1)
     methods = [Method.parse(fields) for fields in args.method]
-    if any(m.target_inference == "learned" for m in methods) and args.target_estimator is None:
-        raise SystemExit("infer-learned methods need --target-estimator (a file of benchmarks/target_estimator.py)")
-    if args.target_estimator is not None:
+    if any(m.target_inference == "learned" for m in methods):
         try:  # a bad file fails here, in one line, not in every worker
             LearnedTargetEstimator.load(args.target_estimator)
         except ValueError as error:
@@ -282,7 +281,7 @@ def main(argv: list[str] | None = None) -> None:
             "methods": method_records + [{"label": m.label, "algo": m.algo, "models": [str(p) for p in m.paths],
                                           "env_kwargs": m.env_kwargs, "zero_shot": m.zero_shot,
                                           "target_inference": m.target_inference,
-                                          **({"target_estimator": str(args.target_estimator)}
+                                          **({"target_estimator": str(args.target_estimator or "packaged")}
                                              if m.target_inference == "learned" else {})} for m in methods],
             "eval_wall_s": round(time.perf_counter() - start, 1), "summary": summary}
     (args.out / "adaptation.json").write_text(json.dumps(meta, indent=2))

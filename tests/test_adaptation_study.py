@@ -101,7 +101,7 @@ def test_learned_inference_needs_a_readable_estimator(study, tmp_path):
     (tmp_path / "goal_seed0.zip").write_bytes(b"")
     method = ["--method", "learned", "sac", str(tmp_path / "goal_seed*.zip"), "infer-learned"]
     with pytest.raises(SystemExit, match="--target-estimator"):
-        study["main"]([*method, "--out", str(tmp_path / "out")])
+        study["main"]([*method, "--target-estimator", str(tmp_path / "missing.pt"), "--out", str(tmp_path / "out")])
     (tmp_path / "estimator.pt").write_text("not an estimator")
     with pytest.raises(SystemExit, match="LearnedTargetEstimator.save"):
         study["main"]([*method, "--target-estimator", str(tmp_path / "estimator.pt"), "--out", str(tmp_path / "out")])

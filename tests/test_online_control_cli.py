@@ -61,12 +61,17 @@ def test_online_control_infers_hidden_targets_for_a_goal_observing_model(
     with pytest.raises(SystemExit) as exit_info:
         online_control.main(["--policy", "scripted", "--infer-targets", "probe", *common])
     assert exit_info.value.code == 2 and "--infer-targets needs --model" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        online_control.main(["--model", str(tmp_path / "goal.zip"), "--infer-targets", "probe", "--target-estimator",
+                             str(tmp_path / "goal.zip"), *common])
+    assert exit_info.value.code == 2 and "--target-estimator needs --infer-targets learned" in capsys.readouterr().err
 
 
-def test_online_control_runs_the_packaged_goal_observing_policy_on_hidden_targets(tmp_path: Path) -> None:
+@pytest.mark.parametrize("inference", ["probe", "learned"])  # learned: the packaged target estimator
+def test_online_control_runs_the_packaged_goal_observing_policy_on_hidden_targets(tmp_path: Path, inference: str) -> None:
     import csv
 
-    online_control.main(["--pretrained", "mappo", "--infer-targets", "probe", "--targets", "per_arm",
+    online_control.main(["--pretrained", "mappo", "--infer-targets", inference, "--targets", "per_arm",
                          "--schedule", "0:3,1", "--steps", "250", "--out", str(tmp_path)])
     with (tmp_path / "online_log.csv").open() as handle:
         (row,) = csv.DictReader(handle)

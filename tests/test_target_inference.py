@@ -155,9 +155,7 @@ def test_learned_estimator_learns_targets_from_readings_and_round_trips(tmp_path
 def test_learned_inference_moves_as_probe_inference_and_collects_labelled_readings(goal_oracle):
     env = gym.make(HIDDEN)
     tasks = InstructionBenchmark(HIDDEN, 3, 4, n_test=4).test_tasks
-    with pytest.raises(ValueError, match="needs an estimator"):
-        TargetInferencePolicy.for_env(goal_oracle, env, inference="learned")
-    with pytest.raises(ValueError, match="only it takes one"):
+    with pytest.raises(ValueError, match="only inference='learned' takes an estimator"):
         TargetInferencePolicy.for_env(goal_oracle, env, estimator=trilaterate)
 
     class Exact:  # the estimator a perfect network would be: trilateration of its first 6 readings
@@ -191,3 +189,22 @@ def test_target_estimator_benchmark_writes_estimators_and_errors(load_benchmark,
     for bad in (["--model", str(tmp_path / "none.zip")], ["--n-readings", "3"]):  # fail before collecting
         with pytest.raises(SystemExit):
             module.main([*bad, "--out", str(tmp_path)])
+
+
+def test_the_packaged_estimator_finds_held_out_targets_from_four_readings(goal_oracle):
+    from vafn_gym.constants import SUCCESS_TOLERANCE
+    from vafn_sb3.pretrained import PRETRAINED_ESTIMATOR
+
+    env = gym.make(HIDDEN)
+    tasks = InstructionBenchmark(HIDDEN, 1, 10, n_test=6).test_tasks
+    readings = collect_waypoint_readings(goal_oracle, env, tasks, seed=0, n_readings=4, progress=False)
+    packaged = TargetInferencePolicy.for_env(goal_oracle, env, inference="learned").estimator  # the default
+    assert packaged.n_readings == 4 and json.loads(PRETRAINED_ESTIMATOR.with_suffix(".json").read_text())["n_readings"] == 4
+
+    def within_tolerance(estimator: LearnedTargetEstimator) -> float:
+        estimates = estimator.predict(readings["points"], readings["distances"])
+        return float(np.mean(np.linalg.norm(estimates - readings["targets"], axis=1) < SUCCESS_TOLERANCE))
+
+    assert within_tolerance(LearnedTargetEstimator.load()) >= 0.9
+    assert within_tolerance(LearnedTargetEstimator()) < 0.5  # an untrained network does not pass this test
+    env.close()

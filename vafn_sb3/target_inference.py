@@ -67,7 +67,8 @@ class TargetInferencePolicy:
     :param inference: one of :data:`INFERENCE_MODES`.
     :param waiting_goal: the env's ``waiting_goal``: with "home" a waiting arm's goal is its home, as the model saw it.
     :param estimator: the :class:`LearnedTargetEstimator` of ``inference="learned"`` (any callable from a
-        waypoint's readings so far, ``(points, distances)``, to a target or None).
+        waypoint's readings so far, ``(points, distances)``, to a target or None); None: the packaged estimator
+        (``LearnedTargetEstimator.load()``).
     """
 
     def __init__(
@@ -94,10 +95,10 @@ class TargetInferencePolicy:
         self.priors = {arm: np.asarray(priors[arm], dtype=np.float64) for arm in self.arm_ids}
         if inference not in INFERENCE_MODES:
             raise ValueError(f"inference must be one of {INFERENCE_MODES}, got {inference!r}")
-        if (inference == "learned") != (estimator is not None):
-            raise ValueError("inference='learned' needs an estimator (a LearnedTargetEstimator), and only it takes one")
+        if estimator is not None and inference != "learned":
+            raise ValueError(f"only inference='learned' takes an estimator, not inference={inference!r}")
         self.inference = inference
-        self.estimator = estimator
+        self.estimator = LearnedTargetEstimator.load() if inference == "learned" and estimator is None else estimator
         #: Whether a newly active arm makes the probe moves.
         self.probes = inference in ("probe", "learned")
         self.waiting_goal = waiting_goal
@@ -292,8 +293,16 @@ class LearnedTargetEstimator:
                     "stats": stats}, path)
 
     @classmethod
-    def load(cls, path: str | Path) -> LearnedTargetEstimator:
-        """An estimator saved by :meth:`save` (tensors and numbers only: a file carrying code is refused, not run)."""
+    def load(cls, path: str | Path | None = None) -> LearnedTargetEstimator:
+        """An estimator saved by :meth:`save` (tensors and numbers only: a file carrying code is refused, not run).
+
+        :param path: the file; None loads the packaged estimator of ``VAFN/ThreeArmReachHidden-v1`` (its training
+            command and held-out error are in the JSON file beside it).
+        """
+        if path is None:
+            from vafn_sb3.pretrained import PRETRAINED_ESTIMATOR
+
+            path = PRETRAINED_ESTIMATOR
         try:
             saved = torch.load(path, map_location="cpu", weights_only=True)
             estimator = cls(saved["n_readings"], saved["hidden"])

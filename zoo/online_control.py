@@ -85,7 +85,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="run a model trained with observed targets (observe_goal=True) on the stream's hidden "
                              "targets through TargetInferencePolicy with this inference setting")
     parser.add_argument("--target-estimator", type=Path, default=None,
-                        help="LearnedTargetEstimator file for --infer-targets learned (benchmarks/target_estimator.py)")
+                        help="LearnedTargetEstimator file for --infer-targets learned (benchmarks/target_estimator.py; "
+                             "None: the packaged estimator)")
     parser.add_argument("--n-support", type=int, default=25, help="support transitions per instruction (twin env)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the arrivals, support rollouts and env")
     parser.add_argument("--out", type=Path, default=Path("runs/online"),
@@ -121,6 +122,8 @@ def main(argv: list[str] | None = None) -> None:
         model = ScriptedController.for_env(env)
     else:
         model = RandomPolicy(env.action_space, args.seed)
+    if args.target_estimator is not None and args.infer_targets != "learned":
+        parser.exit(2, "online_control.py: error: --target-estimator needs --infer-targets learned\n")
     if args.infer_targets is not None:
         if args.policy is not None:
             parser.exit(2, "online_control.py: error: --infer-targets needs --model or --pretrained\n")

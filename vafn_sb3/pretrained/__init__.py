@@ -14,6 +14,9 @@ from typing import Any
 import gymnasium as gym
 
 PRETRAINED_DIR = Path(__file__).resolve().parent
+#: The shipped :class:`~vafn_sb3.LearnedTargetEstimator` of the hidden-target env (``LearnedTargetEstimator.load()``),
+#: with its training command and held-out error in the JSON file beside it.
+PRETRAINED_ESTIMATOR = PRETRAINED_DIR / "estimators" / "target_estimator__VAFN-ThreeArmReachHidden-v1.pt"
 
 
 def available_pretrained() -> list[tuple[str, str]]:
