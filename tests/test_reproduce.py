@@ -26,8 +26,22 @@ def test_every_panel_method_has_its_algorithm_yaml_and_a_known_evaluation() -> N
         assert len(labels) == len(set(labels)), f"{panel.name}: duplicated labels"
         for method in panel.methods:
             assert (REPO_ROOT / "hyperparams" / f"{method.algo}.yml").is_file(), method
-            assert method.evaluation in ("adapt", "zero-shot", "infer-probe"), method
+            assert method.evaluation in ("adapt", "zero-shot", "infer-probe", "infer-learned"), method
             assert panel.over_k or method.evaluation != "adapt", f"{panel.name} is evaluated at K = 0 only"
+            if method.models_from is not None:  # evaluates models another method of the panel trains
+                source = next(m for m in panel.methods if m.label == method.models_from)
+                assert source.models_from is None and (source.algo, source.train_env) == (method.algo,
+                                                                                          method.train_env)
+
+
+def test_a_method_evaluating_another_methods_models_trains_nothing_and_finds_them(tmp_path: Path) -> None:
+    from zoo.reproduce import model_dir, train_jobs
+
+    learned = next(m for m in HIDDEN_PANEL.methods if m.models_from is not None)
+    source = next(m for m in HIDDEN_PANEL.methods if m.label == learned.models_from)
+    labels = {job.method.label for job in train_jobs(BUDGETS["smoke"], (HIDDEN_PANEL,), tmp_path)}
+    assert source.label in labels and learned.label not in labels
+    assert model_dir(tmp_path, HIDDEN_PANEL, learned) == model_dir(tmp_path, HIDDEN_PANEL, source)
 
 
 def test_train_job_command_saves_where_the_evaluation_looks(tmp_path: Path) -> None:
@@ -71,8 +85,9 @@ def test_reproduce_smoke_writes_every_artefact(tmp_path: Path) -> None:
     for name in ("adaptation/hidden/adaptation.png", "adaptation/order/adaptation.png", "training_costs.csv",
                  "fig4_online_sac.png", "fig4_online_scripted.png", "table1_smoke.md", "SUMMARY.md"):
         assert (out / name).is_file(), f"{name} missing; stderr: {result.stderr[-2000:]}"
-    # hidden: scripted, random, the packaged goal MAPPO at K = 0, maml_sac and mappo at K = 0 and 1 (1 task, 1 seed)
-    assert len((out / "adaptation" / "hidden" / "adaptation.csv").read_text().splitlines()) == 1 + 3 + 2 * 2
+    # hidden: scripted, random, the packaged goal MAPPO with both inferences at K = 0, maml_sac and mappo at K = 0
+    # and 1 (1 task, 1 seed)
+    assert len((out / "adaptation" / "hidden" / "adaptation.csv").read_text().splitlines()) == 1 + 4 + 2 * 2
     # order: scripted, random, maml_sac, mappo, the two packaged order-family policies, all at K = 0
     assert len((out / "adaptation" / "order" / "adaptation.csv").read_text().splitlines()) == 1 + 6
     costs = (out / "training_costs.csv").read_text().splitlines()

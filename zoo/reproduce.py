@@ -77,7 +77,7 @@ def run_script(command: list[str], **kwargs: Any) -> subprocess.CompletedProcess
 # --- training: benchmarks/learning.py, one process per (method, seed) ---
 def model_dir(work: Path, panel: Panel, method: StudyMethod) -> Path:
     """Where the models of one method of one panel are saved (one per seed), and where its evaluation finds them."""
-    return work / "models" / panel.name / method.label
+    return work / "models" / panel.name / (method.models_from or method.label)
 
 
 @dataclass(frozen=True)
@@ -136,9 +136,9 @@ class TrainJob:
 
 
 def train_jobs(budget: Budget, panels: tuple[Panel, ...], work: Path) -> list[TrainJob]:
-    """Every (panel, method, seed) the mode trains."""
+    """Every (panel, method, seed) the mode trains (not the methods that evaluate another method's models)."""
     return [TrainJob(panel, method, seed, budget, work)
-            for panel in panels for method in panel.methods for seed in budget.seeds]
+            for panel in panels for method in panel.methods if method.models_from is None for seed in budget.seeds]
 
 
 def run_training(jobs: list[TrainJob], n_workers: int) -> list[dict[str, Any]]:
@@ -193,7 +193,8 @@ def pretrained_methods(panel: Panel) -> list[StudyMethod]:
         if env_id == panel.env_id:
             methods.append(StudyMethod(f"pretrained_{algo}", algo, env_id, "adapt" if panel.over_k else "zero-shot"))
         elif panel.env_id == HIDDEN_ENV and env_id == GOAL_ENV:
-            methods.append(StudyMethod(f"pretrained_{algo}_infer_probe", algo, env_id, "infer-probe"))
+            methods += [StudyMethod(f"pretrained_{algo}_infer_{how}", algo, env_id, f"infer-{how}")
+                        for how in ("probe", "learned")]
     return methods
 
 

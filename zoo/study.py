@@ -26,8 +26,10 @@ class StudyMethod:
     """One method of a panel: a label, its zoo algorithm, what it trains on and how the panel evaluates it.
 
     ``evaluation`` is ``"adapt"`` (K adaptation steps on the panel's support sets, every K of the mode),
-    ``"zero-shot"`` (K = 0: a method that adapts inside the episode, or a panel that only measures generalisation) or
-    ``"infer-probe"`` (a model trained on observed targets run through ``TargetInferencePolicy``).
+    ``"zero-shot"`` (K = 0: a method that adapts inside the episode, or a panel that only measures generalisation),
+    ``"infer-probe"`` or ``"infer-learned"`` (a model trained on observed targets run through ``TargetInferencePolicy``
+    with trilateration, or with the packaged target estimator). A method with ``models_from`` trains nothing: it
+    evaluates the models of that method of the panel another way.
     """
 
     label: str
@@ -36,6 +38,7 @@ class StudyMethod:
     evaluation: str = "adapt"
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     hyperparams: dict[str, Any] = field(default_factory=dict)
+    models_from: str | None = None
 
     def method_fields(self, models: str) -> list[str]:
         """The ``--method`` fields of ``benchmarks/adaptation.py`` for this method's models (a glob)."""
@@ -80,6 +83,8 @@ HIDDEN_PANEL = Panel(
         StudyMethod("maac", "maac", HIDDEN_ENV, hyperparams={"train_freq": 4}),
         StudyMethod("sac_history4", "sac", HIDDEN_ENV, "zero-shot", env_kwargs={"history": 4}),
         StudyMethod("goal_mappo_infer_probe", "mappo", GOAL_ENV, "infer-probe"),
+        StudyMethod("goal_mappo_infer_learned", "mappo", GOAL_ENV, "infer-learned",
+                    models_from="goal_mappo_infer_probe"),
     ),
     over_k=True,
     claim=PAPER_FIG3,
