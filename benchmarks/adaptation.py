@@ -10,9 +10,9 @@ that adapt inside the episode (a history of readings, ``--method ... '{"history"
 zero-shot run at K = 0 only (``zero-shot`` as the fifth field). ``infer-probe`` runs a model trained with observed
 targets through :class:`vafn_sb3.target_inference.TargetInferencePolicy` (probe moves, then trilateration inside the
 episode; ``infer-passive``: without the probe moves; ``infer-learned``: probe moves, then the network of
-``--target-estimator`` (default: the packaged one) instead of trilateration; ``infer-none``: the centre of the shared region as every goal), also
-at K = 0 only. The scripted controller (the ceiling) and a uniform random policy (the floor) run on the same
-tasks.
+``--target-estimator`` (default: the packaged one) instead of trilateration; ``infer-none``: the centre of the shared
+region as every goal), also at K = 0 only. The scripted controller (the ceiling) and a uniform random policy (the
+floor) run on the same tasks.
 
 Writes to ``--out``: ``adaptation.csv`` (one row per method, seed, task and K), ``adaptation_summary.csv`` (per method
 and K: mean over seeds of the per-seed task means, with a 95 % Student-t half width over seeds), ``adaptation.png``

@@ -68,7 +68,9 @@ def test_online_control_infers_hidden_targets_for_a_goal_observing_model(
 
 
 @pytest.mark.parametrize("inference", ["probe", "learned"])  # learned: the packaged target estimator
-def test_online_control_runs_the_packaged_goal_observing_policy_on_hidden_targets(tmp_path: Path, inference: str) -> None:
+def test_online_control_runs_the_packaged_goal_observing_policy_on_hidden_targets(
+    tmp_path: Path, inference: str
+) -> None:
     import csv
 
     online_control.main(["--pretrained", "mappo", "--infer-targets", inference, "--targets", "per_arm",

@@ -199,7 +199,8 @@ def test_the_packaged_estimator_finds_held_out_targets_from_four_readings(goal_o
     tasks = InstructionBenchmark(HIDDEN, 1, 10, n_test=6).test_tasks
     readings = collect_waypoint_readings(goal_oracle, env, tasks, seed=0, n_readings=4, progress=False)
     packaged = TargetInferencePolicy.for_env(goal_oracle, env, inference="learned").estimator  # the default
-    assert packaged.n_readings == 4 and json.loads(PRETRAINED_ESTIMATOR.with_suffix(".json").read_text())["n_readings"] == 4
+    metadata = json.loads(PRETRAINED_ESTIMATOR.with_suffix(".json").read_text())
+    assert packaged.n_readings == metadata["n_readings"] == 4
 
     def within_tolerance(estimator: LearnedTargetEstimator) -> float:
         estimates = estimator.predict(readings["points"], readings["distances"])
