@@ -70,6 +70,7 @@ _AUDIO_OUTPUT_SYNCHRONOUS = 2
 _INITIALIZE_DONT_EXIT = 0x8000
 _POS_CHARACTER = 1
 _CHARS_UTF8 = 1
+_PHONEMES = 0x100  # espeakPHONEMES: text may hold [[...]] phoneme mnemonics
 _NOISE_SEED = 12345
 _PARAM_RATE, _PARAM_PITCH, _PARAM_RANGE, _PARAM_WORDGAP = 1, 3, 4, 7
 
@@ -169,11 +170,12 @@ class EspeakSynthesizer:
             cls._instance = cls()
         return cls._instance
 
-    def synthesize(self, text: str, voice: Voice = Voice()) -> np.ndarray:
+    def synthesize(self, text: str, voice: Voice = Voice(), phonemes: bool = False) -> np.ndarray:
         """Speak ``text`` with ``voice``; returns float32 samples in [-1, 1] at :data:`ESPEAK_SAMPLE_RATE`.
 
         :param text: what to say.
         :param voice: voice, variant, rate, pitch, intonation range and word gap.
+        :param phonemes: read ``[[...]]`` in ``text`` as espeak-ng phoneme mnemonics (``"[[t'U]]"``).
         """
         if self._lib.espeak_SetVoiceByName(voice.full_name.encode()) != 0:
             raise ValueError(f"espeak-ng does not know the voice {voice.full_name!r}")
@@ -184,7 +186,8 @@ class EspeakSynthesizer:
             self._seed_random(_NOISE_SEED)  # breathy/whisper variants draw noise from espeak's PRNG
         self._chunks.clear()
         data = text.encode() + b"\0"
-        self._lib.espeak_Synth(data, len(data), 0, _POS_CHARACTER, 0, _CHARS_UTF8, None, None)
+        flags = _CHARS_UTF8 | (_PHONEMES if phonemes else 0)
+        self._lib.espeak_Synth(data, len(data), 0, _POS_CHARACTER, 0, flags, None, None)
         if not self._chunks:
             return np.zeros(0, dtype=np.float32)
         return np.concatenate(self._chunks).astype(np.float32) / 32768.0
