@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -37,6 +38,8 @@ def main() -> None:
     parser.add_argument("--summary", type=Path, required=True, help="the learning summary the model came from")
     parser.add_argument("--seed", type=int, default=0, help="which seed of the summary the model is")
     parser.add_argument("--n-test", type=int, default=100, help="held-out instructions of the stored evaluation")
+    parser.add_argument("--note", default=None,
+                        help="a sentence stored with the policy, e.g. why one that fails is shipped (None: no note)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     register_algorithms()
@@ -60,7 +63,8 @@ def main() -> None:
             **{key: rates[key] for key in ("success", "collision", "episode_steps")},
             "eval_wall_s": round(time.perf_counter() - start, 1),
         },
-        "export_command": " ".join(sys.argv),
+        "export_command": shlex.join(sys.argv),
+        **({"note": args.note} if args.note else {}),
     }
     pretrained_path(args.algo, args.env).with_suffix(".json").write_text(
         json.dumps(info, indent=2) + "\n"
