@@ -15,9 +15,10 @@ region as every goal), also at K = 0 only. The scripted controller (the ceiling)
 floor) run on the same tasks.
 
 Writes to ``--out``: ``adaptation.csv`` (one row per method, seed, task and K), ``adaptation_summary.csv`` (per method
-and K: mean over seeds of the per-seed task means, with a 95 % Student-t half width over seeds), ``adaptation.png``
-and ``adaptation.json`` (the command, support budget in env steps and in episodes, wall times); ``--replot`` redraws the
-figure from them. Never asserts a number.
+and K: mean over seeds of the per-seed task means, with a 95 % Student-t half width over seeds),
+``adaptation_by_length.csv`` (the same per instruction length, with the share of the task's arms the support sets show
+executing: ``support_arms``), ``adaptation.png`` and ``adaptation.json`` (the command, support budget in env steps and
+in episodes, wall times); ``--replot`` redraws the figure and the length table from them. Never asserts a number.
 
 Usage::
 
@@ -56,6 +57,7 @@ from tqdm import tqdm  # noqa: E402
 import vafn_gym  # noqa: E402,F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark, RandomPolicy, ScriptedController  # noqa: E402
 from vafn_gym.files import write_csv_rows  # noqa: E402
+from vafn_gym.instructions import Instruction  # noqa: E402
 from vafn_sb3.common.adaptation import evaluate_adaptation  # noqa: E402
 from vafn_sb3.common.adaptation_curves import (  # noqa: E402
     ADAPTATION_METRICS,
@@ -162,11 +164,16 @@ def evaluate_references(args: argparse.Namespace, tasks: list) -> list[dict]:
 
 
 def read_rows(path: Path) -> list[dict]:
-    """Rows of an earlier ``adaptation.csv`` (numbers parsed)."""
+    """Rows of an earlier ``adaptation.csv`` (numbers parsed; an empty cell, a column older rows lack, is NaN)."""
     integers = ("seed", "task_index", "k", "n_support")
+
+    def parse(key: str, value: str) -> Any:
+        if key in ("method", "task"):
+            return value
+        return int(value) if key in integers else float(value or "nan")
+
     with path.open(newline="") as handle:
-        return [{key: (value if key in ("method", "task") else int(value) if key in integers else float(value))
-                 for key, value in row.items()} for row in csv.DictReader(handle)]
+        return [{key: parse(key, value) for key, value in row.items()} for row in csv.DictReader(handle)]
 
 
 def summary_rows(curves: dict[str, dict[str, AdaptationCurve]]) -> list[dict]:
@@ -181,6 +188,27 @@ def summary_rows(curves: dict[str, dict[str, AdaptationCurve]]) -> list[dict]:
                 entry[f"{metric}_ci95"] = float(curve.half_width[index])
             summary.append(entry)
     return summary
+
+
+def by_length_rows(rows: list[dict]) -> list[dict]:
+    """``adaptation_by_length.csv`` rows: per method, K and instruction length, each rate's mean over seeds with its
+    95 % t half width, and the mean share of the task's arms its support sets show executing (NaN at K = 0)."""
+    cells = [{**row, "cell": (row["method"], len(Instruction.parse(row["task"])))} for row in rows]
+    curves = aggregate_adaptation(cells, group="cell")
+    table = []
+    for (method, length), first in curves["success_rate"].items():
+        for index, k in enumerate(first.k):
+            coverage = [row.get("support_arms", np.nan) for row in cells
+                        if row["cell"] == (method, length) and row["k"] == k]
+            entry: dict[str, Any] = {"method": method, "length": length, "k": int(k), "n_seeds": first.n_seeds,
+                                     "n_tasks": first.n_tasks}
+            for metric in ("success_rate", "collision_rate"):
+                entry[metric] = float(curves[metric][method, length].mean[index])
+                entry[f"{metric}_ci95"] = float(curves[metric][method, length].half_width[index])
+            entry["support_arms"] = float(np.mean(coverage)) if not np.isnan(coverage).all() else float("nan")
+            table.append(entry)
+    return sorted(table, key=lambda entry: (entry["length"], [*curves["success_rate"]].index(
+        (entry["method"], entry["length"])), entry["k"]))
 
 
 def support_episodes(args: argparse.Namespace, tasks: list) -> float:
@@ -208,7 +236,9 @@ def figure_title(meta: dict[str, Any]) -> str:
 def replot(out: Path) -> Path:
     """Redraw ``out/adaptation.png`` from the ``adaptation.csv`` and ``adaptation.json`` already there."""
     meta = json.loads((out / "adaptation.json").read_text())
-    curves = aggregate_adaptation(read_rows(out / "adaptation.csv"))
+    rows = read_rows(out / "adaptation.csv")
+    write_csv_rows(by_length_rows(rows), out / "adaptation_by_length.csv")
+    curves = aggregate_adaptation(rows)
     return plot_adaptation(curves, out / "adaptation.png", figure_title(meta), references=REFERENCES)
 
 
@@ -238,7 +268,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, default=Path("results/adaptation"), help="output folder")
     parser.add_argument("--title", default="", help="what this run is, put first in the figure's title")
     parser.add_argument("--replot", action="store_true",
-                        help="only redraw --out's adaptation.png from its adaptation.csv (no evaluation)")
+                        help="only redraw --out's adaptation.png and adaptation_by_length.csv from its "
+                             "adaptation.csv (no evaluation)")
     return parser.parse_args(argv)
 
 
@@ -274,6 +305,7 @@ def main(argv: list[str] | None = None) -> None:
     summary = summary_rows(curves)
     write_csv_rows(rows, args.out / "adaptation.csv")
     write_csv_rows(summary, args.out / "adaptation_summary.csv")
+    write_csv_rows(by_length_rows(rows), args.out / "adaptation_by_length.csv")
     episodes = support_episodes(args, tasks)
     meta = {"command": shlex.join(sys.argv), "title": args.title, "env": args.env, "env_kwargs": args.env_kwargs,
             "test_lengths": [args.min_length, args.max_length], "n_tasks": len(tasks), "benchmark_seed": benchmark.seed,

@@ -62,6 +62,18 @@ def test_summary_is_a_mean_over_seeds_of_task_means_with_a_t_interval(study):
     assert entry["collision_rate_ci95"] == 0.0
 
 
+def test_by_length_table_splits_tasks_by_instruction_length(study):
+    rows = [{"method": "m", "seed": seed, "k": k, "task": task, "success_rate": success, "collision_rate": 0.0,
+             "return_mean": 1.0, "support_arms": arms if k else float("nan")}
+            for seed in (0, 1) for k in (0, 5)
+            for task, success, arms in (("2", 1.0, 1.0), ("3", 0.0, 1.0), ("2,3,1", 0.0, 1 / 3))]
+    table = {(e["length"], e["k"]): e for e in study["by_length_rows"](rows)}
+    assert set(table) == {(1, 0), (1, 5), (3, 0), (3, 5)}
+    assert table[1, 5]["success_rate"] == 0.5 and table[1, 5]["n_tasks"] == 2 and table[1, 5]["n_seeds"] == 2
+    assert table[3, 5]["success_rate"] == 0.0 and table[3, 5]["support_arms"] == pytest.approx(1 / 3)
+    assert table[1, 0]["support_arms"] != table[1, 0]["support_arms"]  # NaN: K = 0 collects no support
+
+
 @pytest.mark.parametrize("workers", [1, 2])
 def test_study_end_to_end(study, tmp_path, monkeypatch, workers):
     models = tmp_path / "models"
@@ -94,6 +106,10 @@ def test_study_end_to_end(study, tmp_path, monkeypatch, workers):
     assert meta["n_support_steps"] == 12 and meta["support_episodes_mean"] == 1.0
     assert {(e["method"], e["k"]) for e in meta["summary"]} >= {("mtsac", 0), ("mtsac", 1), ("history", 0)}
     assert (out / "adaptation.png").stat().st_size > 0
+    with (out / "adaptation_by_length.csv").open() as handle:
+        by_length = list(csv.DictReader(handle))
+    assert {(r["method"], r["length"]) for r in by_length} >= {("mtsac", "1"), ("scripted", "1")}
+    assert all(float(r["support_arms"]) == 1.0 for r in by_length if r["method"] == "mtsac" and r["k"] == "1")
     assert [m.get("target_estimator") for m in meta["methods"]] == [None, None, None, str(models / "estimator.pt")]
 
 

@@ -493,3 +493,4 @@ def test_shared_adaptation_protocol_runs_for_every_baseline(trained):
     )
     assert [row["k"] for row in rows] == [0, 1]
     assert all(np.isfinite(row["return_mean"]) for row in rows)
+    assert 0.0 <= rows[1]["support_arms"] <= 1.0  # the fine-tuned copy keeps its support set

@@ -15,7 +15,7 @@ from torch.func import functional_call
 
 import vafn_gym  # noqa: F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark
-from vafn_sb3.common.adaptation import Adaptable, SupportSet, collect_support, evaluate_adaptation
+from vafn_sb3.common.adaptation import Adaptable, SupportSet, collect_support, evaluate_adaptation, support_coverage
 from vafn_sb3.maml_sac import MAMLSAC
 from vafn_sb3.maml_sac.functional import clip_gradients, inner_adapt, query_losses
 from vafn_sb3.maml_sac.policies import parameters_of
@@ -263,6 +263,27 @@ def test_evaluate_adaptation_rows(model):
                                env_kwargs=ENV_KWARGS)
     assert [(r["task_index"], r["k"]) for r in rows] == [(0, 0), (0, 2), (1, 0), (1, 2)]
     assert all(0.0 <= r["success_rate"] <= 1.0 and np.isfinite(r["return_mean"]) for r in rows)
+    # one-waypoint tasks: the support set shows their arm executing; K = 0 collects none
+    assert [r["support_arms"] for r in rows if r["k"] == 2] == [1.0, 1.0]
+    assert all(np.isnan(r["support_arms"]) for r in rows if r["k"] == 0)
+
+
+def test_support_coverage_counts_the_arms_seen_executing():
+    def observation(phases):  # three arms, five numbers each: position, distance, phase
+        return np.concatenate([[0.0, 0.0, 0.0, 0.3, phase] for phase in phases])
+
+    def support(*phase_rows):
+        obs = np.array([observation(phases) for phases in phase_rows], dtype=np.float32)
+        zeros = np.zeros(len(obs), dtype=np.float32)
+        return SupportSet(obs, np.zeros((len(obs), 9)), zeros, obs, zeros, zeros, zeros, zeros)
+
+    # arm 2 executes the first waypoint and never completes it: arms 3 and 1 of "2,3,1,3" stay unseen
+    stuck = support((0, 1, 0), (0, 1, 0))
+    assert support_coverage(stuck, "2,3,1,3", n_arms=3) == pytest.approx(1 / 3)
+    moving_on = support((0, 1, 0), (0, 2, 1), (1, 2, 2))
+    assert support_coverage(moving_on, "2,3,1,3", n_arms=3) == 1.0
+    assert support_coverage(stuck, "2", n_arms=3) == 1.0
+    assert support_coverage(stuck, "1", n_arms=3) == 0.0
 
 
 def test_inner_step_is_bounded_when_the_critic_scale_is_off(model):

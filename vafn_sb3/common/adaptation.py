@@ -6,7 +6,9 @@ adaptation rule and returns an :class:`AdaptedPolicy`, without changing the mode
 replay buffers, target networks are restored in a ``finally`` block even when adaptation raises).
 
 :func:`evaluate_adaptation` measures any such model on the same held-out tasks with the same support budget and the
-same ``k``, so MAML-SAC and the baselines are compared like for like.
+same ``k``, so MAML-SAC and the baselines are compared like for like. An adapted policy that keeps its support set as
+``policy.support`` (MAML-SAC's and the fine-tuning baselines' do) also gets the share of the task's arms that support
+set shows executing (:func:`support_coverage`): an adaptation step can only use what its support set contains.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import numpy as np
 import torch
 
 from vafn_gym.benchmarks import run_episode
+from vafn_gym.constants import PHASE_EXECUTING, PHASE_INDEX
 from vafn_gym.instructions import Instruction
 
 __all__ = [
@@ -30,6 +33,7 @@ __all__ = [
     "collect_support",
     "evaluate_adaptation",
     "run_episode",
+    "support_coverage",
 ]
 
 #: Offset between the seed of the support rollouts and the seeds of the evaluation episodes of the same task.
@@ -38,7 +42,8 @@ EVAL_SEED_OFFSET = 10_000
 
 @runtime_checkable
 class AdaptedPolicy(Protocol):
-    """What :meth:`Adaptable.adapt` returns: anything with SB3's ``predict`` signature."""
+    """What :meth:`Adaptable.adapt` returns: anything with SB3's ``predict`` signature (and, optionally, the
+    :class:`SupportSet` it adapted on as ``support``)."""
 
     def predict(
         self,
@@ -185,6 +190,26 @@ def collect_support(model: Any, env: gym.Env, task: Instruction | None, n_suppor
     return SupportSet(**{name: np.asarray(values, dtype=np.float32) for name, values in columns.items()})
 
 
+def support_coverage(support: SupportSet, task: Instruction, n_arms: int) -> float:
+    """The share of ``task``'s arms that ``support`` shows executing a waypoint (phase 1) at least once.
+
+    On hidden targets an arm's readings say where its target is only while it executes, and a policy that does not
+    reach the first waypoint never lets the second arm start: its support set then shows the first arm alone.
+
+    :param support: the support set (observations of ``n_arms`` equal blocks, each starting with the newest reading).
+    :param task: the instruction the support set was collected on.
+    :param n_arms: arms of the env (blocks per observation).
+    """
+    arms = set(Instruction.coerce(task).arms)
+    if not arms:
+        return float("nan")
+    observations = np.concatenate([support.observations, support.next_observations])
+    blocks = observations.reshape(len(observations), n_arms, -1)
+    executing = np.round(blocks[:, :, PHASE_INDEX]) == PHASE_EXECUTING
+    seen = {arm + 1 for arm in np.flatnonzero(executing.any(axis=0))}
+    return len(arms & seen) / len(arms)
+
+
 def evaluate_adaptation(
     model: Any,
     env_id: str,
@@ -211,7 +236,8 @@ def evaluate_adaptation(
     :param seed: base seed; task ``i`` uses support seed ``seed + i`` and evaluation seeds after ``EVAL_SEED_OFFSET``.
     :param env_kwargs: extra keyword arguments of ``gym.make``.
     :return: one row per (task, k): ``task_index``, ``task`` (code), ``k``, ``n_support``, ``return_mean``,
-        ``success_rate``, ``collision_rate``, ``adapt_time_s`` (wall time of ``adapt``, support collection included).
+        ``success_rate``, ``collision_rate``, ``adapt_time_s`` (wall time of ``adapt``, support collection included),
+        ``support_arms`` (:func:`support_coverage` of the adapted policy's ``support``; NaN where there is none).
     """
     if not tasks:
         raise ValueError("tasks is empty")
@@ -233,6 +259,9 @@ def evaluate_adaptation(
                 else:
                     policy = model.adapt(env, task=task, n_support=n_support, k=int(k), seed=seed + task_index)
                 adapt_time = time.perf_counter() - start
+                support = getattr(policy, "support", None) if int(k) > 0 else None
+                coverage = (support_coverage(support, task, len(env.unwrapped.arms))
+                            if isinstance(support, SupportSet) else float("nan"))
                 env.unwrapped.set_task(task)
                 episodes = [
                     run_episode(policy, env, seed=seed + EVAL_SEED_OFFSET + task_index * n_eval_episodes + episode)
@@ -248,6 +277,7 @@ def evaluate_adaptation(
                         "success_rate": float(np.mean([e["success"] for e in episodes])),
                         "collision_rate": float(np.mean([e["collision"] for e in episodes])),
                         "adapt_time_s": adapt_time,
+                        "support_arms": coverage,
                     }
                 )
     finally:

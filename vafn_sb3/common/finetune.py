@@ -124,7 +124,8 @@ class FineTuneAdaptation:
         :param n_support: support transitions, collected with the stochastic policy.
         :param k: number of gradient steps of the algorithm's own update on the support set (0 returns a copy).
         :param seed: seed of the support rollouts and of the fine-tuning noise.
-        :return: the adapted policy (an SB3 policy in evaluation mode); the model itself is unchanged.
+        :return: the adapted policy (an SB3 policy in evaluation mode, its support set as ``support``); the model
+            itself is unchanged.
         """
         if k < 0:
             raise ValueError(f"k must be >= 0, got {k}")
@@ -143,6 +144,7 @@ class FineTuneAdaptation:
         finally:
             self._restore(saved)
         adapted.set_training_mode(False)
+        adapted.support = support
         return adapted
 
     def _support_policy(self, seed: int | None) -> Any:

@@ -541,7 +541,7 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         :param n_support: support transitions (default: the meta-training ``n_support``).
         :param k: inner rounds (default: the meta-training ``inner_steps``); 0 returns the meta-policy as a dict copy.
         :param seed: seed of the support rollouts.
-        :return: the adapted policy.
+        :return: the adapted policy (its support set as ``support``).
         """
         n_support = self.n_support if n_support is None else int(n_support)
         k = self.inner_steps if k is None else int(k)
@@ -559,7 +559,7 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         try:
             support = collect_support(self, env, None if task is None else Instruction.coerce(task), n_support, seed)
             actor_params, critic_params = self.adapted_parameters([support], k)[0]
-            return AdaptedSACPolicy(self.policy, self.actor_distribution, actor_params, critic_params)
+            return AdaptedSACPolicy(self.policy, self.actor_distribution, actor_params, critic_params, support)
         finally:
             with torch.no_grad():
                 self.policy.load_state_dict(snapshot)

@@ -16,6 +16,8 @@ from stable_baselines3.sac.policies import Actor
 from torch import nn
 from torch.func import functional_call
 
+from vafn_sb3.common.adaptation import SupportSet
+
 #: Added inside ``log(1 - tanh(u)^2 + eps)``, as in SB3's squashed Gaussian.
 SQUASH_EPS = 1e-6
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
@@ -90,15 +92,18 @@ class AdaptedSACPolicy:
     :param actor: functional wrapper of the model's actor.
     :param actor_params: adapted actor parameters.
     :param critic_params: adapted critic parameters (kept for inspection).
+    :param support: the support set it was adapted on (kept for inspection).
     """
 
     def __init__(
-        self, policy: BasePolicy, actor: ActorDistribution, actor_params: Params, critic_params: Params
+        self, policy: BasePolicy, actor: ActorDistribution, actor_params: Params, critic_params: Params,
+        support: SupportSet | None = None,
     ) -> None:
         self.policy = policy
         self.actor = actor
         self.actor_params = actor_params
         self.critic_params = critic_params
+        self.support = support
 
     def predict(
         self,
