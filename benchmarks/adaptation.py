@@ -5,7 +5,10 @@ Every method is a set of saved models, one per training seed (``benchmarks/learn
 ``--min-length``..``--max-length``, its fixed seed: the same tasks for every method) and every K in ``--k``, the model
 collects ``--n-support`` transitions of the task with its stochastic policy (the same env seeds for every method and
 K), takes K adaptation steps (``model.adapt``: MAML-SAC's inner rounds, the others' own gradient steps on the support
-set: :func:`vafn_sb3.common.adaptation.evaluate_adaptation`) and runs the adapted policy deterministically. Methods
+set: :func:`vafn_sb3.common.adaptation.evaluate_adaptation`) and runs the adapted policy deterministically. A support
+set holds episodes of the task itself (``--support episodes``), where a policy that does not complete a waypoint never
+shows the arms after it, or one single-waypoint instruction per arm of the task, the budget split between them
+(``--support per-arm``). Methods
 that adapt inside the episode (a history of readings, ``--method ... '{"history": 4}'``) and methods evaluated
 zero-shot run at K = 0 only (``zero-shot`` as the fifth field). ``infer-probe`` runs a model trained with observed
 targets through :class:`vafn_sb3.target_inference.TargetInferencePolicy` (probe moves, then trilateration inside the
@@ -58,7 +61,7 @@ import vafn_gym  # noqa: E402,F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark, RandomPolicy, ScriptedController  # noqa: E402
 from vafn_gym.files import write_csv_rows  # noqa: E402
 from vafn_gym.instructions import Instruction  # noqa: E402
-from vafn_sb3.common.adaptation import evaluate_adaptation  # noqa: E402
+from vafn_sb3.common.adaptation import SUPPORT_MODES, evaluate_adaptation, per_arm_tasks  # noqa: E402
 from vafn_sb3.common.adaptation_curves import (  # noqa: E402
     ADAPTATION_METRICS,
     AdaptationCurve,
@@ -131,7 +134,7 @@ def evaluate_model(method: Method, path: Path, args: argparse.Namespace, tasks: 
         env.close()
     rows = evaluate_adaptation(model, args.env, tasks, n_support=args.n_support,
                                k_values=[0] if method.zero_shot else args.k, n_eval_episodes=args.n_eval_episodes,
-                               seed=args.seed, env_kwargs=env_kwargs)
+                               seed=args.seed, env_kwargs=env_kwargs, support=args.support)
     return [{"method": method.label, "seed": seed_of(path), **row} for row in rows]
 
 
@@ -212,23 +215,30 @@ def by_length_rows(rows: list[dict]) -> list[dict]:
 
 
 def support_episodes(args: argparse.Namespace, tasks: list) -> float:
-    """Mean number of episodes (started) in a support set of ``--n-support`` steps, with the task's step budget."""
+    """Mean number of episodes (started) in a support set of ``--n-support`` steps, with the tasks' step budgets (with
+    ``--support per-arm``, summed over the task's single-waypoint instructions, each with its share of the steps)."""
     env = gym.make(args.env, **args.env_kwargs)
     base = env.unwrapped
-    budgets = []
+    episodes = []
     for task in tasks:
-        base.set_task(task)
-        env.reset(seed=args.seed)
-        budgets.append(base.max_episode_steps())
+        support_tasks = per_arm_tasks(task) if args.support == "per-arm" else [task]
+        started = 0.0
+        for index, support_task in enumerate(support_tasks):
+            share = args.n_support // len(support_tasks) + (index < args.n_support % len(support_tasks))
+            base.set_task(support_task)
+            env.reset(seed=args.seed)
+            started += np.ceil(share / base.max_episode_steps())
+        episodes.append(started)
     env.close()
-    return float(np.mean([np.ceil(args.n_support / budget) for budget in budgets]))
+    return float(np.mean(episodes))
 
 
 def figure_title(meta: dict[str, Any]) -> str:
     """The figure's title from ``adaptation.json``: what the run is, the tasks, the support budget."""
     low, high = meta["test_lengths"]
     prefix = f"{meta['title']}\n" if meta.get("title") else ""
-    support = support_budget(meta["n_support_steps"], meta["support_episodes_mean"], max(meta.get("k", [1])))
+    support = support_budget(meta["n_support_steps"], meta["support_episodes_mean"], max(meta.get("k", [1])),
+                             meta.get("support", "episodes"))
     return (f"{prefix}{meta['env']}: {meta['n_tasks']} held-out test instructions of lengths {low}-{high}; {support}; "
             "mean over seeds ± 95 % CI")
 
@@ -259,6 +269,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--n-tasks", type=int, default=30, help="held-out test instructions")
     parser.add_argument("--k", type=int, nargs="+", default=DEFAULT_K, help="adaptation steps to evaluate")
     parser.add_argument("--n-support", type=int, default=400, help="support transitions per adaptation")
+    parser.add_argument("--support", choices=SUPPORT_MODES, default="episodes",
+                        help="what a support set holds: episodes of the task itself, or one single-waypoint "
+                             "instruction per arm of the task (every hidden target shown; the budget split)")
     parser.add_argument("--n-eval-episodes", type=int, default=1,
                         help="deterministic episodes per task and K (the env is deterministic given the task)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the support rollouts and evaluation episodes")
@@ -296,9 +309,12 @@ def main(argv: list[str] | None = None) -> None:
         replaced = {method.label for method in methods} | set(REFERENCES)
         kept = [row for row in read_rows(args.out / "adaptation.csv") if row["method"] not in replaced]
         earlier = {(row["task"], row["n_support"]) for row in kept}
-        if not earlier <= {(task.to_code(), args.n_support) for task in tasks}:
-            raise SystemExit(f"--append: {args.out / 'adaptation.csv'} has other tasks or another --n-support")
-        previous = json.loads((args.out / "adaptation.json").read_text())["methods"]
+        previous_meta = json.loads((args.out / "adaptation.json").read_text())
+        if not earlier <= {(task.to_code(), args.n_support) for task in tasks} or (
+                previous_meta.get("support", "episodes") != args.support):
+            raise SystemExit(f"--append: {args.out / 'adaptation.csv'} has other tasks, another --n-support or "
+                             "another --support")
+        previous = previous_meta["methods"]
         method_records = [m for m in previous if m["label"] not in replaced]
     rows = evaluate_references(args, tasks) + kept + evaluate_methods(methods, args, tasks)
     curves = aggregate_adaptation(rows)
@@ -309,7 +325,7 @@ def main(argv: list[str] | None = None) -> None:
     episodes = support_episodes(args, tasks)
     meta = {"command": shlex.join(sys.argv), "title": args.title, "env": args.env, "env_kwargs": args.env_kwargs,
             "test_lengths": [args.min_length, args.max_length], "n_tasks": len(tasks), "benchmark_seed": benchmark.seed,
-            "n_support_steps": args.n_support, "support_episodes_mean": episodes, "k": args.k,
+            "n_support_steps": args.n_support, "support": args.support, "support_episodes_mean": episodes, "k": args.k,
             "methods": method_records + [{"label": m.label, "algo": m.algo, "models": [str(p) for p in m.paths],
                                           "env_kwargs": m.env_kwargs, "zero_shot": m.zero_shot,
                                           "target_inference": m.target_inference,

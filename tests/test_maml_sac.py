@@ -14,8 +14,10 @@ from stable_baselines3.common.vec_env import VecNormalize
 from torch.func import functional_call
 
 import vafn_gym  # noqa: F401  (registers the env IDs)
-from vafn_gym import InstructionBenchmark
-from vafn_sb3.common.adaptation import Adaptable, SupportSet, collect_support, evaluate_adaptation, support_coverage
+from vafn_gym import Instruction, InstructionBenchmark
+from vafn_sb3.common.adaptation import (
+    Adaptable, SupportSet, collect_support, evaluate_adaptation, per_arm_tasks, support_coverage,
+)
 from vafn_sb3.maml_sac import MAMLSAC
 from vafn_sb3.maml_sac.functional import clip_gradients, inner_adapt, query_losses
 from vafn_sb3.maml_sac.policies import parameters_of
@@ -266,6 +268,24 @@ def test_evaluate_adaptation_rows(model):
     # one-waypoint tasks: the support set shows their arm executing; K = 0 collects none
     assert [r["support_arms"] for r in rows if r["k"] == 2] == [1.0, 1.0]
     assert all(np.isnan(r["support_arms"]) for r in rows if r["k"] == 0)
+
+
+def test_per_arm_support_shows_every_arm_of_the_task(model):
+    task = Instruction.from_arms([2, 3, 2], targets=[(0.05, 0.0, 0.25), (0.0, 0.05, 0.3), (0.05, 0.0, 0.25)])
+    parts = per_arm_tasks(task)
+    assert [part.to_code() for part in parts] == ["2", "3"]
+    assert np.allclose(parts[1].targets, [[0.0, 0.05, 0.3]])
+    env = gym.make(ENV_ID, **ENV_KWARGS)
+    support = collect_support(model, env, parts, 17, seed=0)
+    assert len(support) == 17 and support_coverage(support, task, n_arms=3) == 1.0
+    assert support.episode_ends[8] == 1.0  # the first task's share (9 steps) ends its episode
+    rows = evaluate_adaptation(model, ENV_ID, [task], n_support=16, k_values=[1], env_kwargs=ENV_KWARGS,
+                               support="per-arm")
+    assert rows[0]["support_arms"] == 1.0
+    with pytest.raises(ValueError, match="support must be one of"):
+        evaluate_adaptation(model, ENV_ID, [task], n_support=16, k_values=[1], support="all")
+    with pytest.raises(ValueError, match="at least one per task"):
+        collect_support(model, env, parts, 1, seed=0)
 
 
 def test_support_coverage_counts_the_arms_seen_executing():

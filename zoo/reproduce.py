@@ -369,7 +369,8 @@ def panel_section(folder: Path) -> list[str]:
     if folder.name in PANEL_CLAIMS:
         lines += [f"Paper / claim: {PANEL_CLAIMS[folder.name]}", ""]
     appended = " (the last of several `--append` runs; `adaptation.json` lists every method's models)"
-    support = support_budget(meta["n_support_steps"], meta["support_episodes_mean"], max(k_values))
+    support = support_budget(meta["n_support_steps"], meta["support_episodes_mean"], max(k_values),
+                             meta.get("support", "episodes"))
     lines += [f"{meta['n_tasks']} held-out test instructions of lengths {low}-{high}; {support}; "
               f"mean ± 95 % CI over seeds. Figure `{folder.name}/adaptation.png`; command "
               f"`python {meta['command']}`" + (appended if "--append" in meta["command"] else "") + ".", ""]

@@ -63,11 +63,12 @@ class Panel:
     claim: str
 
 
-def support_budget(n_support_steps: int, support_episodes: float, k_max: int) -> str:
+def support_budget(n_support_steps: int, support_episodes: float, k_max: int, support: str = "episodes") -> str:
     """What one adaptation of a panel spends, as its figure and SUMMARY.md say it: the support set, or none at K = 0."""
     if k_max == 0:
         return "no adaptation (K = 0)"
-    return f"a support set of {n_support_steps} env steps (~{support_episodes:.1f} episodes) per task and K"
+    shape = ", split over one single-waypoint instruction per arm" if support == "per-arm" else ""
+    return f"a support set of {n_support_steps} env steps (~{support_episodes:.1f} episodes{shape}) per task and K"
 
 
 PAPER_FIG3 = "MAML-SAC reaches success 1.0 by adaptation step 20 with zero collisions and beats MAAC, MAPPO, MADDPG."

@@ -29,15 +29,21 @@ from vafn_gym.instructions import Instruction
 __all__ = [
     "Adaptable",
     "AdaptedPolicy",
+    "SUPPORT_MODES",
     "SupportSet",
     "collect_support",
     "evaluate_adaptation",
+    "is_task_list",
+    "per_arm_tasks",
     "run_episode",
     "support_coverage",
 ]
 
 #: Offset between the seed of the support rollouts and the seeds of the evaluation episodes of the same task.
 EVAL_SEED_OFFSET = 10_000
+#: What a support set holds: "episodes" of the task itself (from its first waypoint on), or "per-arm", one
+#: single-waypoint instruction per arm of the task (:func:`per_arm_tasks`), the budget split between them.
+SUPPORT_MODES = ("episodes", "per-arm")
 
 
 @runtime_checkable
@@ -68,8 +74,9 @@ class Adaptable(Protocol):
         k: int = ...,
         seed: int | None = None,
     ) -> AdaptedPolicy:
-        """Collect ``n_support`` stochastic transitions on ``env`` (task ``task``; ``None`` keeps the env's), take ``k``
-        adaptation steps and return the adapted policy; the model's own state is left bit-identical."""
+        """Collect ``n_support`` stochastic transitions on ``env`` (task ``task``, or a list of tasks sharing the budget
+        as :func:`collect_support` does; ``None`` keeps the env's), take ``k`` adaptation steps and return the adapted
+        policy; the model's own state is left bit-identical."""
         ...
 
 
@@ -150,9 +157,11 @@ class SupportSet:
         ).astype(np.float32)
 
 
-def collect_support(model: Any, env: gym.Env, task: Instruction | None, n_support: int, seed: int | None) -> SupportSet:
+def collect_support(
+    model: Any, env: gym.Env, task: Instruction | Sequence[Instruction] | None, n_support: int, seed: int | None
+) -> SupportSet:
     """Roll out ``model``'s stochastic policy (``predict(obs, deterministic=False)``) for ``n_support`` steps on one
-    task.
+    task, or on several (the budget split evenly between them, the first ones taking the remainder).
 
     The env is reset (with ``seed``) after ``env.unwrapped.set_task(task)``, and again after every episode end. Torch's
     global random stream is forked, so the policy noise is reproducible from ``seed`` and the caller's stream is left
@@ -160,34 +169,54 @@ def collect_support(model: Any, env: gym.Env, task: Instruction | None, n_suppor
 
     :param model: anything with SB3's ``predict``.
     :param env: a single (non-vectorised) Gymnasium env exposing ``unwrapped.set_task``.
-    :param task: the instruction to adapt to; ``None`` keeps the env's current task.
-    :param n_support: number of transitions to collect (>= 1).
+    :param task: the instruction to adapt to, or a list of instructions (e.g. :func:`per_arm_tasks`); ``None`` keeps
+        the env's current task.
+    :param n_support: number of transitions to collect (>= 1, and at least one per task).
     :param seed: seed of the env resets and the policy noise (``None``: unseeded).
-    :return: the collected transitions.
+    :return: the collected transitions (the tasks' in order).
     """
-    if n_support < 1:
-        raise ValueError(f"n_support must be >= 1, got {n_support}")
-    if task is not None:
-        env.unwrapped.set_task(task)
+    tasks = list(task) if is_task_list(task) else [task]
+    if n_support < max(1, len(tasks)):
+        raise ValueError(f"n_support must be >= 1 and at least one per task ({len(tasks)}), got {n_support}")
+    shares = [n_support // len(tasks) + (index < n_support % len(tasks)) for index in range(len(tasks))]
     columns: dict[str, list] = {name: [] for name in SupportSet.__dataclass_fields__}
     with torch.random.fork_rng(devices=[]):
         if seed is not None:
             torch.manual_seed(seed)
-        obs, _ = env.reset(seed=seed)
-        for _ in range(n_support):
-            action, _ = model.predict(obs, deterministic=False)
-            next_obs, reward, terminated, truncated, info = env.step(action)
-            columns["observations"].append(obs)
-            columns["actions"].append(action)
-            columns["rewards"].append(reward)
-            columns["next_observations"].append(next_obs)
-            columns["terminated"].append(float(terminated))
-            columns["episode_ends"].append(float(terminated or truncated))
-            columns["successes"].append(float(info.get("is_success", False)))
-            columns["collisions"].append(float(info.get("collision", False)))
-            obs = env.reset()[0] if terminated or truncated else next_obs
-    columns["episode_ends"][-1] = 1.0  # the support budget cuts the last episode
+        for index, (one_task, share) in enumerate(zip(tasks, shares)):
+            if one_task is not None:
+                env.unwrapped.set_task(one_task)
+            obs, _ = env.reset(seed=None if seed is None else seed + index)
+            for _ in range(share):
+                action, _ = model.predict(obs, deterministic=False)
+                next_obs, reward, terminated, truncated, info = env.step(action)
+                columns["observations"].append(obs)
+                columns["actions"].append(action)
+                columns["rewards"].append(reward)
+                columns["next_observations"].append(next_obs)
+                columns["terminated"].append(float(terminated))
+                columns["episode_ends"].append(float(terminated or truncated))
+                columns["successes"].append(float(info.get("is_success", False)))
+                columns["collisions"].append(float(info.get("collision", False)))
+                obs = env.reset()[0] if terminated or truncated else next_obs
+            columns["episode_ends"][-1] = 1.0  # the task's share of the budget cuts its last episode
     return SupportSet(**{name: np.asarray(values, dtype=np.float32) for name, values in columns.items()})
+
+
+def is_task_list(task: Any) -> bool:
+    """Whether ``task`` is several support tasks (a list or tuple of :class:`Instruction`), not one instruction."""
+    return isinstance(task, (list, tuple)) and bool(task) and all(isinstance(one, Instruction) for one in task)
+
+
+def per_arm_tasks(task: Instruction) -> list[Instruction]:
+    """One single-waypoint instruction per arm of ``task`` (order of first appearance, the arm's own target).
+
+    The support sets of :func:`evaluate_adaptation`'s ``support="per-arm"``: every arm's hidden target is in its
+    support set, whether or not the unadapted policy would ever complete the waypoints before it.
+    """
+    task = Instruction.coerce(task)
+    firsts = {waypoint.arm: waypoint for waypoint in reversed(task)}
+    return [Instruction([firsts[arm]]) for arm in dict.fromkeys(task.arms)]
 
 
 def support_coverage(support: SupportSet, task: Instruction, n_arms: int) -> float:
@@ -219,6 +248,7 @@ def evaluate_adaptation(
     n_eval_episodes: int = 3,
     seed: int = 0,
     env_kwargs: dict | None = None,
+    support: str = "episodes",
 ) -> list[dict]:
     """Adaptation curve of ``model``: deterministic evaluation after ``k`` adaptation steps, per task and ``k``.
 
@@ -235,6 +265,7 @@ def evaluate_adaptation(
     :param n_eval_episodes: deterministic evaluation episodes per (task, k).
     :param seed: base seed; task ``i`` uses support seed ``seed + i`` and evaluation seeds after ``EVAL_SEED_OFFSET``.
     :param env_kwargs: extra keyword arguments of ``gym.make``.
+    :param support: one of :data:`SUPPORT_MODES`: what the support set of each task holds.
     :return: one row per (task, k): ``task_index``, ``task`` (code), ``k``, ``n_support``, ``return_mean``,
         ``success_rate``, ``collision_rate``, ``adapt_time_s`` (wall time of ``adapt``, support collection included),
         ``support_arms`` (:func:`support_coverage` of the adapted policy's ``support``; NaN where there is none).
@@ -245,6 +276,8 @@ def evaluate_adaptation(
         raise ValueError(f"n_eval_episodes must be >= 1, got {n_eval_episodes}")
     if any(int(k) < 0 for k in k_values):
         raise ValueError(f"k_values must be >= 0, got {list(k_values)}")
+    if support not in SUPPORT_MODES:
+        raise ValueError(f"support must be one of {SUPPORT_MODES}, got {support!r}")
     if any(int(k) > 0 for k in k_values) and not isinstance(model, Adaptable):
         raise TypeError(f"{type(model).__name__} has no adapt(); only k = 0 can be evaluated")
     env = gym.make(env_id, **(env_kwargs or {}))
@@ -257,11 +290,12 @@ def evaluate_adaptation(
                 if int(k) == 0:
                     policy = model
                 else:
-                    policy = model.adapt(env, task=task, n_support=n_support, k=int(k), seed=seed + task_index)
+                    support_task = per_arm_tasks(task) if support == "per-arm" else task
+                    policy = model.adapt(env, task=support_task, n_support=n_support, k=int(k), seed=seed + task_index)
                 adapt_time = time.perf_counter() - start
-                support = getattr(policy, "support", None) if int(k) > 0 else None
-                coverage = (support_coverage(support, task, len(env.unwrapped.arms))
-                            if isinstance(support, SupportSet) else float("nan"))
+                support_set = getattr(policy, "support", None) if int(k) > 0 else None
+                coverage = (support_coverage(support_set, task, len(env.unwrapped.arms))
+                            if isinstance(support_set, SupportSet) else float("nan"))
                 env.unwrapped.set_task(task)
                 episodes = [
                     run_episode(policy, env, seed=seed + EVAL_SEED_OFFSET + task_index * n_eval_episodes + episode)

@@ -120,7 +120,8 @@ class FineTuneAdaptation:
         """Fine-tune a copy of the policy on ``n_support`` fresh transitions of ``task`` with ``k`` own gradient steps.
 
         :param env: a single (non-vectorised) env exposing ``unwrapped.set_task``.
-        :param task: the instruction to adapt to (``None`` keeps the env's task).
+        :param task: the instruction to adapt to, or a list of them sharing the support budget (``None`` keeps the
+            env's task).
         :param n_support: support transitions, collected with the stochastic policy.
         :param k: number of gradient steps of the algorithm's own update on the support set (0 returns a copy).
         :param seed: seed of the support rollouts and of the fine-tuning noise.

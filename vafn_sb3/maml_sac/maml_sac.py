@@ -48,7 +48,7 @@ from torch.func import vmap
 
 from vafn_gym.instructions import Instruction
 from vafn_gym.tasks import TaskSampler
-from vafn_sb3.common.adaptation import SupportSet, collect_support
+from vafn_sb3.common.adaptation import SupportSet, collect_support, is_task_list
 from vafn_sb3.common.serialization import AtomicSaveMixin
 from vafn_sb3.maml_sac.buffers import TaskRolloutBuffer
 from vafn_sb3.maml_sac.functional import inner_adapt, query_losses
@@ -537,7 +537,8 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         never touched), so they are bit-identical afterwards, also when adaptation raises.
 
         :param env: a single (non-vectorised) env of the same spaces, exposing ``unwrapped.set_task``.
-        :param task: the instruction (anything ``Instruction.coerce`` accepts); ``None`` keeps the env's task.
+        :param task: the instruction (anything ``Instruction.coerce`` accepts), or a list of them sharing the support
+            budget; ``None`` keeps the env's task.
         :param n_support: support transitions (default: the meta-training ``n_support``).
         :param k: inner rounds (default: the meta-training ``inner_steps``); 0 returns the meta-policy as a dict copy.
         :param seed: seed of the support rollouts.
@@ -557,7 +558,9 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         variables = {name: getattr(self, name).detach().clone() for name in self._get_torch_save_params()[1]}
         training = self.policy.training
         try:
-            support = collect_support(self, env, None if task is None else Instruction.coerce(task), n_support, seed)
+            if task is not None and not is_task_list(task):
+                task = Instruction.coerce(task)
+            support = collect_support(self, env, task, n_support, seed)
             actor_params, critic_params = self.adapted_parameters([support], k)[0]
             return AdaptedSACPolicy(self.policy, self.actor_distribution, actor_params, critic_params, support)
         finally:
