@@ -8,7 +8,10 @@ spoken instructions (lengths 1-10, random phrasings, a seed of its own) under pr
   the frame's voicing), then with the number words said with **other vowels and consonants** (espeak-ng phoneme
   input: e.g. *two* as [tU], [tu], [tVu]; *three* as [tri:], [fri:], [TrI]), one variant per word;
 - flite (never trained on) as it is, then warped at test time: vocal-tract length (the training VTLP, factors 0.75-1.25)
-  and playback speed (0.85-1.15).
+  and playback speed (0.85-1.15);
+- both engines saying only the number words, as one sentence and then **one word at a time**, each word synthesised
+  alone, trimmed and joined with 0, 100 or 250 ms of silence: where the words no longer touch, what is left of the
+  errors lies in the words themselves, not in how an engine runs them together.
 
 If the reader keeps its accuracy under the espeak probes but the flite warps do not bring flite up, what differs is
 neither the voice source, the pronunciation, the vocal-tract length nor the rate, but how the other engine renders
@@ -33,6 +36,10 @@ import numpy as np  # noqa: E402
 ITEM_SEED = 777
 #: Voice source of the resynthesis probe: LPC order, analysis frame (s), f0 range (Hz).
 LPC_ORDER, LPC_FRAME_S, F0_RANGE = 18, 0.02, (70.0, 260.0)
+#: Silence between number words said one at a time (s).
+WORD_GAPS_S: tuple[float, ...] = (0.0, 0.1, 0.25)
+#: Share of a word's peak below which its leading and trailing samples count as silence.
+TRIM_LEVEL = 0.01
 #: espeak-ng phoneme mnemonics of each number word: the default (first) and accent-like variants.
 PRONUNCIATIONS: dict[int, tuple[str, ...]] = {
     1: ("w'Vn", "w'0n", "w'@n", "w'an"),
@@ -82,6 +89,24 @@ def espeak_with_pronunciation(arms: tuple[int, ...], voice: str, variant: int) -
     return EspeakSynthesizer.shared().synthesize(text, Voice(*voice.split("+")), phonemes=True)
 
 
+def trim_silence(waveform: np.ndarray) -> np.ndarray:
+    """The clip without leading and trailing samples under :data:`TRIM_LEVEL` of its peak."""
+    loud = np.flatnonzero(np.abs(waveform) > TRIM_LEVEL * np.abs(waveform).max())
+    return waveform[loud[0]:loud[-1] + 1] if len(loud) else waveform
+
+
+def one_word_at_a_time(arms: tuple[int, ...], say: Callable[[str], tuple[np.ndarray, int]],
+                       gap_s: float) -> tuple[np.ndarray, int]:
+    """The number words of ``arms`` each synthesised alone by ``say``, trimmed and joined by ``gap_s`` of silence."""
+    from vafn_media.speech import NUMBER_WORDS
+
+    words = [say(NUMBER_WORDS[arm]) for arm in arms]
+    rate = words[0][1]
+    gap = np.zeros(int(gap_s * rate), np.float32)
+    parts = [part for waveform, _ in words for part in (gap, trim_silence(waveform))][1:]
+    return np.concatenate(parts).astype(np.float32), rate
+
+
 def accuracy(read: Callable[[np.ndarray, int], tuple[int, ...]], clips: list[tuple[np.ndarray, int]],
              labels: list[tuple[int, ...]]) -> float:
     """Exact-sequence accuracy (%) of ``read`` on padded clips; a rejected clip counts as wrong."""
@@ -110,10 +135,10 @@ def main(argv: list[str] | None = None) -> list[tuple[str, str, float]]:
     from vafn_media.batching import warp_vocal_tract
     from vafn_media.constants import SAMPLE_RATE
     from vafn_media.decoding import greedy_decode
-    from vafn_media.engines import available_engines
+    from vafn_media.engines import available_engines, flite_speak
     from vafn_media.evaluation import speech_items
     from vafn_media.features import log_mel
-    from vafn_media.speech import ESPEAK_SAMPLE_RATE
+    from vafn_media.speech import ESPEAK_SAMPLE_RATE, NUMBER_WORDS, EspeakSynthesizer, Voice
 
     torch.set_num_threads(1)
     started = time.perf_counter()
@@ -132,6 +157,28 @@ def main(argv: list[str] | None = None) -> list[tuple[str, str, float]]:
         return run
 
     rows: list[tuple[str, str, float]] = []
+
+    def word_rows(engine: str, spoken_items: list, synthesise: Callable[[str, str], tuple[np.ndarray, int]]) -> None:
+        """The number-words-only rows of one engine, on its non-empty instructions."""
+        # one synthesis per (voice, word): a word alone sounds the same in every instruction
+        said: dict[tuple[str, str], tuple[np.ndarray, int]] = {}
+
+        def say_in(voice: str) -> Callable[[str], tuple[np.ndarray, int]]:
+            def say(word: str) -> tuple[np.ndarray, int]:
+                if (voice, word) not in said:
+                    said[voice, word] = synthesise(word, voice)
+                return said[voice, word]
+            return say
+
+        spoken_items = [item for item in spoken_items if item.arms]
+        arms_of = [item.arms for item in spoken_items]
+        sentences = [synthesise(" ".join(NUMBER_WORDS[arm] for arm in item.arms), item.voice) for item in spoken_items]
+        rows.append((engine, f"only the number words, as one sentence ({len(arms_of)} non-empty)",
+                     accuracy(read, sentences, arms_of)))
+        for gap_s in WORD_GAPS_S:
+            joined = [one_word_at_a_time(item.arms, say_in(item.voice), gap_s) for item in spoken_items]
+            rows.append((engine, f"only the number words, one at a time, {1000 * gap_s:.0f} ms apart",
+                         accuracy(read, joined, arms_of)))
     items = speech_items("espeak", args.items, ITEM_SEED)
     clips = [(item.waveform, item.sample_rate) for item in items]
     labels = [item.arms for item in items]
@@ -145,6 +192,9 @@ def main(argv: list[str] | None = None) -> list[tuple[str, str, float]]:
                                                                                        (3, "three")))
         spoken = [(espeak_with_pronunciation(item.arms, item.voice, variant), ESPEAK_SAMPLE_RATE) for item in items]
         rows.append(("espeak held-out voices", f"number words as {said}", accuracy(read, spoken, labels)))
+    word_rows("espeak held-out voices", items,
+              lambda text, voice: (EspeakSynthesizer.shared().synthesize(text, Voice(*voice.split("+"))),
+                                   ESPEAK_SAMPLE_RATE))
     for engine in available_engines():
         items = speech_items(engine, args.items, ITEM_SEED)
         clips = [(item.waveform, item.sample_rate) for item in items]
@@ -156,6 +206,7 @@ def main(argv: list[str] | None = None) -> list[tuple[str, str, float]]:
         for factor in (0.85, 0.9, 1.1, 1.15):
             sped = [(speed(resample(w, r, SAMPLE_RATE), factor), SAMPLE_RATE) for w, r in clips]
             rows.append((engine, f"played at {factor}x speed (tempo and pitch)", accuracy(read, sped, labels)))
+        word_rows(engine, items, flite_speak)
     lines = [f"Speech reader invariance: packaged checkpoint, audio alone, {args.items} instructions (lengths 1-10, "
              f"random phrasings, item seed {ITEM_SEED}) per engine, exact sequence.", "",
              "| Speech | Probe | Exact (%) |", "|---|---|---|"]

@@ -36,6 +36,27 @@ def test_probe_table_is_written(load_benchmark, tmp_path):
     module = load_benchmark("speech_invariance")
     rows = module.main(["--items", "2", "--out", str(tmp_path / "table.md")])
     espeak = [row for row in rows if row[0].startswith("espeak")]
-    assert len(espeak) == 2 + len(module.PRONUNCIATIONS[1]) and all(0 <= row[2] <= 100 for row in rows)
-    assert len(rows) == len(espeak) + 11 * len(available_engines())
+    word_rows = 1 + len(module.WORD_GAPS_S)  # one sentence, then one word at a time per gap
+    assert len(espeak) == 2 + len(module.PRONUNCIATIONS[1]) + word_rows and all(0 <= row[2] <= 100 for row in rows)
+    assert len(rows) == len(espeak) + (11 + word_rows) * len(available_engines())
     assert "| espeak held-out voices | as synthesised |" in (tmp_path / "table.md").read_text()
+
+
+def test_words_said_one_at_a_time_are_joined_by_the_gap_and_read(load_benchmark):
+    from vafn_media import InstructionGenerator
+    from vafn_media.speech import ESPEAK_SAMPLE_RATE, EspeakSynthesizer, Voice
+
+    module = load_benchmark("speech_invariance")
+    words = {}
+
+    def say(word: str) -> tuple[np.ndarray, int]:
+        words[word] = EspeakSynthesizer.shared().synthesize(word, Voice("en-gb-scotland"))  # a held-out voice
+        return words[word], ESPEAK_SAMPLE_RATE
+
+    waveform, rate = module.one_word_at_a_time((2, 3, 1), say, 0.1)
+    trimmed = [module.trim_silence(words[w]) for w in ("two", "three", "one")]
+    assert rate == ESPEAK_SAMPLE_RATE and all(len(t) < len(words[w]) for t, w in zip(trimmed, ("two", "three", "one")))
+    assert len(waveform) == sum(len(t) for t in trimmed) + 2 * int(0.1 * rate)
+    assert np.array_equal(waveform[:len(trimmed[0])], trimmed[0])
+    pad = np.zeros(rate // 4, np.float32)
+    assert InstructionGenerator.load().transcribe(audio=(np.concatenate([pad, waveform, pad]), rate)).arms == (2, 3, 1)
