@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import threading
+from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -109,6 +111,45 @@ def test_heldout_split_uses_unseen_voices_and_glyphs():
     assert voices <= set(TRAIN_VOICES)
     assert {item_spec(0, "heldout", i).voice.name for i in range(200)} <= set(HELDOUT_VOICES)
 
+
+
+def test_mbrola_share_swaps_only_voices_and_keeps_its_pools_apart():
+    from vafn_media.dataset import cache_key, item_spec
+    from vafn_media.speech import HELDOUT_VOICES, MBROLA_HELDOUT_VOICES, MBROLA_TRAIN_VOICES
+
+    assert not set(MBROLA_TRAIN_VOICES) & set(MBROLA_HELDOUT_VOICES)
+    plain = [item_spec(0, "train", i) for i in range(300)]
+    mixed = [item_spec(0, "train", i, mbrola=0.3) for i in range(300)]
+    assert [(s.arms, s.template) for s in plain] == [(s.arms, s.template) for s in mixed]
+    swapped = [(a, b) for a, b in zip(plain, mixed) if a != b]
+    assert 60 <= len(swapped) <= 120  # about 30 %
+    assert all(b.voice.name in MBROLA_TRAIN_VOICES and b.voice.variant == "" and b.voice.rate == a.voice.rate
+               for a, b in swapped)
+    heldout = {item_spec(0, "heldout", i, mbrola=0.3).voice.name for i in range(300)}
+    assert heldout == set(HELDOUT_VOICES) | set(MBROLA_HELDOUT_VOICES)
+    assert cache_key(0, "train", 10) != cache_key(0, "train", 10, mbrola=0.3)
+
+
+def test_mbrola_voice_without_the_program_names_the_packages(monkeypatch):
+    import vafn_media.speech as speech
+
+    monkeypatch.setattr(speech.shutil, "which", lambda name: None)
+    with pytest.raises(RuntimeError, match="apt-get install espeak-ng mbrola"):
+        speech.speak((2, 3), speech.Voice("mb-us1"))
+
+
+@pytest.mark.skipif(shutil.which("espeak-ng") is None or not Path("/usr/share/mbrola/us2").is_dir(),
+                    reason="needs Debian's espeak-ng and mbrola-us2")
+def test_mbrola_voice_is_read_by_the_reader_at_the_espeak_rate():
+    from vafn_media import InstructionGenerator
+    from vafn_media.speech import ESPEAK_SAMPLE_RATE, Voice, speak
+
+    generator = InstructionGenerator.load()
+    pad = np.zeros(ESPEAK_SAMPLE_RATE // 4, np.float32)
+    for arms, template in (((1, 2, 3), 0), ((3, 1, 2), 2)):
+        waveform = speak(arms, Voice("mb-us2", rate=150), template)
+        assert waveform.dtype == np.float32 and 0.5 * ESPEAK_SAMPLE_RATE < len(waveform) < 4 * ESPEAK_SAMPLE_RATE
+        assert generator.transcribe(audio=(np.concatenate([pad, waveform, pad]), ESPEAK_SAMPLE_RATE)).arms == arms
 
 @needs_espeak
 def test_audio_generation_is_reproducible_in_fresh_processes():

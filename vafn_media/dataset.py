@@ -49,15 +49,17 @@ class ItemSpec:
     heldout: bool
 
 
-def item_spec(seed: int, split: str, index: int, difficulty: str | None = None) -> ItemSpec:
+def item_spec(seed: int, split: str, index: int, difficulty: str | None = None, mbrola: float = 0.0) -> ItemSpec:
     """The deterministic specification of item ``index`` of ``split``.
 
     :param seed: dataset seed.
     :param split: "train", "test" or "heldout".
     :param index: item index.
     :param difficulty: restrict the length to a paper bucket ("easy", "medium", "hard"); None = uniform 0..10.
+    :param mbrola: share of items spoken by an MBROLA voice (held-out ones in "heldout"); 0 leaves every item as it
+        was, since the choice is drawn from a stream of its own.
     """
-    from vafn_media.speech import EMPTY_PHRASES, TEMPLATES, sample_voice
+    from vafn_media.speech import EMPTY_PHRASES, TEMPLATES, mbrola_voice, sample_voice
 
     if split not in SPLIT_CODES:
         raise ValueError(f"unknown split {split!r}; choose from {list(SPLIT_CODES)}")
@@ -68,6 +70,10 @@ def item_spec(seed: int, split: str, index: int, difficulty: str | None = None) 
     arms = tuple(int(a) for a in rng.integers(1, NUM_ARMS + 1, length))
     heldout = split == "heldout"
     voice = sample_voice(rng, heldout)
+    if mbrola > 0:
+        choice = np.random.default_rng([seed, SPLIT_CODES[split], difficulty_code, index, 3])
+        if choice.random() < mbrola:
+            voice = mbrola_voice(choice, heldout, voice)
     return ItemSpec(arms, voice, int(rng.integers(len(TEMPLATES))), int(rng.integers(len(EMPTY_PHRASES))),
                     int(rng.integers(2**31)), heldout)
 
@@ -96,11 +102,11 @@ class RawItems:
     specs: list[ItemSpec]
 
 
-def _render_range(args: tuple[int, str, int, int, str | None]) -> RawItems:
+def _render_range(args: tuple[int, str, int, int, str | None, float]) -> RawItems:
     from vafn_media.speech import ESPEAK_SAMPLE_RATE
 
-    seed, split, start, count, difficulty = args
-    specs = [item_spec(seed, split, i, difficulty) for i in range(start, start + count)]
+    seed, split, start, count, difficulty, mbrola = args
+    specs = [item_spec(seed, split, i, difficulty, mbrola) for i in range(start, start + count)]
     rendered = [render_item(spec) for spec in specs]
     return RawItems([s.arms for s in specs], [r[0] for r in rendered], ESPEAK_SAMPLE_RATE,
                     [r[1] for r in rendered], specs)
@@ -143,7 +149,7 @@ def generate_raw(seed: int, split: str, count: int, difficulty: str | None = Non
     :param workers: parallel processes.
     """
     jobs = [
-        (seed, split, s, min(SHARD_SIZE, start + count - s), difficulty)
+        (seed, split, s, min(SHARD_SIZE, start + count - s), difficulty, 0.0)
         for s in range(start, start + count, SHARD_SIZE)
     ]
     done = dict(run_shards(_render_range, jobs, workers))
@@ -152,7 +158,7 @@ def generate_raw(seed: int, split: str, count: int, difficulty: str | None = Non
                     [im for p in parts for im in p.images], [s for p in parts for s in p.specs])
 
 
-def _compact_shard(args: tuple[int, str, int, int, str]) -> str:
+def _compact_shard(args: tuple[int, str, int, int, str, float]) -> str:
     """Render one shard and store training-ready arrays: log-mel features of the clean utterance (resampled to
     SAMPLE_RATE) and of AUGMENTED_COPIES degraded copies (speed, silences, room, noise, telephone, gain/clipping), and
     canonical strips of the clean and of a Cutout copy of each image."""
@@ -164,8 +170,8 @@ def _compact_shard(args: tuple[int, str, int, int, str]) -> str:
     from vafn_media.images import canonical_strip
 
     torch.set_num_threads(1)
-    seed, split, start, count, path = args
-    raw = _render_range((seed, split, start, count, None))
+    seed, split, start, count, path, mbrola = args
+    raw = _render_range((seed, split, start, count, None, mbrola))
     audio: list[list[np.ndarray]] = [[] for _ in range(1 + AUGMENTED_COPIES)]
     clean, masked = [], []
     for index, waveform, image in zip(range(start, start + count), raw.waveforms, raw.images):
@@ -232,16 +238,18 @@ class TrainingData:
         return cls(np.concatenate(arms), np.concatenate(lengths), audio[0], audio[1:], clean, masked)
 
 
-def cache_key(seed: int, split: str, count: int) -> str:
+def cache_key(seed: int, split: str, count: int, mbrola: float = 0.0) -> str:
     """Name of a cached dataset, including a hash of the generator's source so stale caches are not reused.
 
     :param seed: dataset seed.
     :param split: split name.
     :param count: number of items.
+    :param mbrola: share of items spoken by MBROLA voices.
     """
     digest = source_digest("dataset.py", "speech.py", "strips.py", "images.py", "corruptions.py", "constants.py",
                            "features.py", "augment.py")
-    return f"{split}-seed{seed}-n{count}-shard{SHARD_SIZE}-{digest}"
+    voices = f"-mbrola{mbrola:g}" if mbrola > 0 else ""
+    return f"{split}-seed{seed}-n{count}{voices}-shard{SHARD_SIZE}-{digest}"
 
 
 def source_digest(*names: str) -> str:
@@ -254,7 +262,7 @@ def source_digest(*names: str) -> str:
 
 
 def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CACHE, workers: int = 2,
-                progress: bool = True) -> TrainingData:
+                progress: bool = True, mbrola: float = 0.0) -> TrainingData:
     """Generate (or reuse) the cached training arrays of a split, one fresh process per shard, with a progress bar.
 
     :param seed: dataset seed.
@@ -263,17 +271,18 @@ def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CAC
     :param cache_dir: where shards are stored.
     :param workers: parallel processes.
     :param progress: show a tqdm progress bar.
+    :param mbrola: share of items spoken by MBROLA voices (:func:`item_spec`).
     """
     from tqdm import tqdm
 
-    directory = Path(cache_dir) / cache_key(seed, split, count)
+    directory = Path(cache_dir) / cache_key(seed, split, count, mbrola)
     directory.mkdir(parents=True, exist_ok=True)
-    jobs = [(seed, split, s, min(SHARD_SIZE, count - s), str(directory / f"shard{s // SHARD_SIZE:04d}.npz"))
+    jobs = [(seed, split, s, min(SHARD_SIZE, count - s), str(directory / f"shard{s // SHARD_SIZE:04d}.npz"), mbrola)
             for s in range(0, count, SHARD_SIZE)]
-    todo = [job for job in jobs if not os.path.exists(job[-1])]
+    todo = [job for job in jobs if not os.path.exists(job[4])]
     if todo:
         with tqdm(total=len(jobs), initial=len(jobs) - len(todo), disable=not progress,
                   desc=f"generating {split} data", unit="shard") as bar:
             for _ in run_shards(_compact_shard, todo, workers):
                 bar.update()
-    return TrainingData.load([job[-1] for job in jobs])
+    return TrainingData.load([job[4] for job in jobs])

@@ -9,6 +9,9 @@ of a dataset in a fresh process (see :mod:`vafn_media.dataset`) to make generati
 from __future__ import annotations
 
 import ctypes
+import io
+import shutil
+import subprocess
 from dataclasses import dataclass
 from collections.abc import Sequence
 
@@ -53,6 +56,12 @@ TRAIN_VARIANTS: tuple[str, ...] = (
     "victor", "whisper", "whisperf", "zac",
 )
 HELDOUT_VARIANTS: tuple[str, ...] = ("m3", "m5", "f3", "f5", "klatt3", "linda", "steph2", "edward", "Alex")
+#: MBROLA diphone voices (diphones cut from recordings of people), spoken by the espeak-ng *program* with Debian's
+#: ``mbrola`` and ``mbrola-<voice>`` packages: a second synthesiser for training (``--mbrola-probability``); us2 is
+#: held out.
+MBROLA_TRAIN_VOICES: tuple[str, ...] = ("mb-us1", "mb-us3", "mb-en1")
+MBROLA_HELDOUT_VOICES: tuple[str, ...] = ("mb-us2",)
+MBROLA_INSTALL = "apt-get install espeak-ng mbrola mbrola-us1 mbrola-us2 mbrola-us3 mbrola-en1 (contrib, non-free)"
 #: Ranges of espeak parameters sampled per utterance (inclusive): rate 0.7-1.5x the default 175 wpm, word gaps
 #: (units of 10 ms) up to 150 ms half of the time.
 RATE_RANGE: tuple[int, int] = (122, 262)
@@ -121,6 +130,38 @@ def sample_voice(rng: np.random.Generator, heldout: bool) -> Voice:
         intonation=int(rng.integers(INTONATION_RANGE[0], INTONATION_RANGE[1] + 1)),
         wordgap=int(rng.integers(WORDGAP_RANGE[0], WORDGAP_RANGE[1] + 1)) if rng.random() < 0.5 else 0,
     )
+
+
+def mbrola_voice(rng: np.random.Generator, heldout: bool, base: Voice) -> Voice:
+    """An MBROLA voice from the training or held-out pool, at ``base``'s rate, pitch and word gap.
+
+    espeak-ng's variants shape its own formant voice, so an MBROLA voice has none.
+    """
+    voices = MBROLA_HELDOUT_VOICES if heldout else MBROLA_TRAIN_VOICES
+    return Voice(name=str(voices[rng.integers(len(voices))]), rate=base.rate, pitch=base.pitch,
+                 intonation=base.intonation, wordgap=base.wordgap)
+
+
+def synthesize_mbrola(text: str, voice: Voice) -> np.ndarray:
+    """Speak ``text`` with an MBROLA voice through the espeak-ng program; float32 at :data:`ESPEAK_SAMPLE_RATE`.
+
+    :param text: what to say.
+    :param voice: a voice named ``mb-<name>`` (:data:`MBROLA_TRAIN_VOICES`, :data:`MBROLA_HELDOUT_VOICES`).
+    """
+    import soundfile
+
+    from vafn_media.augment import resample
+
+    program = shutil.which("espeak-ng")
+    if program is None:
+        raise RuntimeError(f"MBROLA voices need the espeak-ng program and the voices: {MBROLA_INSTALL}")
+    result = subprocess.run([program, "-v", voice.name, "-s", str(voice.rate), "-p", str(voice.pitch),
+                             "-g", str(voice.wordgap), "--stdout", text], capture_output=True, timeout=60)
+    if result.returncode != 0 or len(result.stdout) <= 44:
+        raise RuntimeError(f"espeak-ng could not speak with {voice.name!r} ({result.stderr.decode().strip()!r}); "
+                           f"install it: {MBROLA_INSTALL}")
+    waveform, rate = soundfile.read(io.BytesIO(result.stdout), dtype="float32")
+    return resample(waveform, int(rate), ESPEAK_SAMPLE_RATE)
 
 
 class EspeakSynthesizer:
@@ -201,5 +242,9 @@ def speak(arms: Sequence[int], voice: Voice = Voice(), template: int = 0, empty_
     :param template: phrasing template index.
     :param empty_phrase: phrasing of the empty instruction.
     """
-    waveform = EspeakSynthesizer.shared().synthesize(phrase(arms, template, empty_phrase), voice)
+    text = phrase(arms, template, empty_phrase)
+    if voice.name.startswith("mb-"):
+        waveform = synthesize_mbrola(text, voice)
+    else:
+        waveform = EspeakSynthesizer.shared().synthesize(text, voice)
     return np.concatenate([waveform, np.zeros(int(TRAILING_SILENCE_SECONDS * ESPEAK_SAMPLE_RATE), np.float32)])

@@ -168,6 +168,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--vtlp-probability", type=float, default=VTLP_PROBABILITY,
                         help="share of training utterances whose formants are scaled by a random factor in "
                              f"{VTLP_RANGE} (vocal-tract-length perturbation, for voices the data has not got)")
+    parser.add_argument("--mbrola-probability", type=float, default=0.0,
+                        help="share of utterances (training and validation) spoken by an MBROLA voice through the "
+                             "espeak-ng program (held-out voice us2 in the held-out split); needs Debian's espeak-ng, "
+                             "mbrola and mbrola-<voice> packages (0: espeak-ng's own voices only)")
     parser.add_argument("--train-only", choices=("all", *MODALITIES), default="all",
                         help="'image' or 'audio': update only that modality's encoder and adapter; the other path, "
                              "the shared projection and the decoder stay frozen, so the other modality's readings "
@@ -194,10 +198,11 @@ def main(argv=None) -> dict:
     rng = np.random.default_rng(args.seed)
     started = time.time()
     cache = args.cache_dir or DEFAULT_CACHE
-    train = build_cache(args.seed, "train", args.train_items, cache, args.workers)
-    validation = {
-        split: build_cache(args.seed, split, args.val_items, cache, args.workers) for split in ("test", "heldout")
-    }
+    if not 0 <= args.mbrola_probability <= 1:
+        raise SystemExit(f"--mbrola-probability must be in [0, 1], got {args.mbrola_probability}")
+    train = build_cache(args.seed, "train", args.train_items, cache, args.workers, mbrola=args.mbrola_probability)
+    validation = {split: build_cache(args.seed, split, args.val_items, cache, args.workers,
+                                     mbrola=args.mbrola_probability) for split in ("test", "heldout")}
     camera = None
     if args.camera_probability > 0:
         from vafn_media.camera import build_image_cache
