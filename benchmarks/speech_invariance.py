@@ -26,6 +26,7 @@ import argparse
 import os
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -135,7 +136,7 @@ def main(argv: list[str] | None = None) -> list[tuple[str, str, float]]:
     from vafn_media.batching import warp_vocal_tract
     from vafn_media.constants import SAMPLE_RATE
     from vafn_media.decoding import greedy_decode
-    from vafn_media.engines import available_engines, flite_speak
+    from vafn_media.engines import available_engines, speak_text
     from vafn_media.evaluation import speech_items
     from vafn_media.features import log_mel
     from vafn_media.speech import ESPEAK_SAMPLE_RATE, NUMBER_WORDS, EspeakSynthesizer, Voice
@@ -206,7 +207,7 @@ def main(argv: list[str] | None = None) -> list[tuple[str, str, float]]:
         for factor in (0.85, 0.9, 1.1, 1.15):
             sped = [(speed(resample(w, r, SAMPLE_RATE), factor), SAMPLE_RATE) for w, r in clips]
             rows.append((engine, f"played at {factor}x speed (tempo and pitch)", accuracy(read, sped, labels)))
-        word_rows(engine, items, flite_speak)
+        word_rows(engine, items, partial(speak_text, engine))
     lines = [f"Speech reader invariance: packaged checkpoint, audio alone, {args.items} instructions (lengths 1-10, "
              f"random phrasings, item seed {ITEM_SEED}) per engine, exact sequence.", "",
              "| Speech | Probe | Exact (%) |", "|---|---|---|"]

@@ -142,6 +142,7 @@ def test_mbrola_voice_without_the_program_names_the_packages(monkeypatch):
                     reason="needs Debian's espeak-ng and mbrola-us2")
 def test_mbrola_voice_is_read_by_the_reader_at_the_espeak_rate():
     from vafn_media import InstructionGenerator
+    from vafn_media.engines import available_engines, speak_with
     from vafn_media.speech import ESPEAK_SAMPLE_RATE, Voice, speak
 
     generator = InstructionGenerator.load()
@@ -150,6 +151,23 @@ def test_mbrola_voice_is_read_by_the_reader_at_the_espeak_rate():
         waveform = speak(arms, Voice("mb-us2", rate=150), template)
         assert waveform.dtype == np.float32 and 0.5 * ESPEAK_SAMPLE_RATE < len(waveform) < 4 * ESPEAK_SAMPLE_RATE
         assert generator.transcribe(audio=(np.concatenate([pad, waveform, pad]), ESPEAK_SAMPLE_RATE)).arms == arms
+    assert "mbrola" in available_engines()
+    normal, rate = speak_with("mbrola", (1, 2, 3), "mb-us2")
+    fast, fast_rate = speak_with("mbrola", (1, 2, 3), "mb-us2", stretch=0.7)
+    assert rate == fast_rate == ESPEAK_SAMPLE_RATE and len(fast) < 0.85 * len(normal)
+
+
+def test_evaluation_engines_name_their_voices_and_reject_others():
+    from vafn_media.engines import FLITE_VOICES, engine_voices, speak_text
+    from vafn_media.speech import MBROLA_HELDOUT_VOICES, MBROLA_TRAIN_VOICES
+
+    assert engine_voices("flite") == FLITE_VOICES
+    assert engine_voices("mbrola") == MBROLA_HELDOUT_VOICES
+    assert not set(engine_voices("mbrola")) & set(MBROLA_TRAIN_VOICES)
+    with pytest.raises(ValueError, match="unknown evaluation engine 'festival'"):
+        engine_voices("festival")
+    with pytest.raises(ValueError, match="unknown mbrola voice 'mb-us1'"):
+        speak_text("mbrola", "two", "mb-us1")  # a training voice is never an evaluation voice
 
 @needs_espeak
 def test_audio_generation_is_reproducible_in_fresh_processes():

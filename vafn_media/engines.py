@@ -1,7 +1,8 @@
-"""Speech engines other than espeak-ng, used only to *evaluate* the reader on voices it was never trained on.
+"""Speech engines other than espeak-ng's own voices, used only to *evaluate* the reader on voices it never trained on.
 
-Nothing here is used for training. Each engine is an external program found on ``PATH`` (e.g. Debian's ``flite``);
-:func:`available_engines` lists the ones present, and callers skip the others.
+Nothing here is used for training. Each engine is an external program found on ``PATH`` (Debian's ``flite``; the
+``espeak-ng`` program with the ``mbrola-us2`` voice, which ``vafn_media.train --mbrola-probability`` keeps out of
+training); :func:`available_engines` lists the ones present, and callers skip the others.
 """
 
 from __future__ import annotations
@@ -11,16 +12,33 @@ import shutil
 import subprocess
 import tempfile
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 
 #: flite voices that read arbitrary text (``awb_time`` only speaks times of day); ``kal`` synthesises at 8 kHz.
 FLITE_VOICES: tuple[str, ...] = ("slt", "rms", "awb", "kal16", "kal")
+#: MBROLA's voice directory (Debian's ``mbrola-<voice>`` packages).
+MBROLA_DIR = Path("/usr/share/mbrola")
+
+
+def engine_voices(engine: str) -> tuple[str, ...]:
+    """The voices an evaluation engine speaks with, in the order items cycle through them."""
+    from vafn_media.speech import MBROLA_HELDOUT_VOICES
+
+    voices = {"flite": FLITE_VOICES, "mbrola": MBROLA_HELDOUT_VOICES}
+    if engine not in voices:
+        raise ValueError(f"unknown evaluation engine {engine!r}; choose from {list(voices)}")
+    return voices[engine]
 
 
 def available_engines() -> list[str]:
-    """Names of the evaluation engines installed on this machine (currently only ``"flite"`` is supported)."""
-    return ["flite"] if shutil.which("flite") else []
+    """Names of the evaluation engines installed on this machine: ``"flite"``, ``"mbrola"`` (held-out voices)."""
+    engines = ["flite"] if shutil.which("flite") else []
+    mbrola_voices = [MBROLA_DIR / voice.removeprefix("mb-") for voice in engine_voices("mbrola")]
+    if shutil.which("espeak-ng") and all(path.is_dir() for path in mbrola_voices):
+        engines.append("mbrola")
+    return engines
 
 
 def flite_speak(text: str, voice: str = "slt", stretch: float = 1.0) -> tuple[np.ndarray, int]:
@@ -45,6 +63,23 @@ def flite_speak(text: str, voice: str = "slt", stretch: float = 1.0) -> tuple[np
     return waveform, int(rate)
 
 
+def speak_text(engine: str, text: str, voice: str, stretch: float = 1.0) -> tuple[np.ndarray, int]:
+    """Say ``text`` with an evaluation engine; returns (float32 waveform, sample rate).
+
+    :param engine: a name from :func:`available_engines`.
+    :param text: what to say.
+    :param voice: one of the engine's :func:`engine_voices`.
+    :param stretch: duration stretch (< 1 is faster; MBROLA: espeak-ng's 175 words per minute divided by it).
+    """
+    from vafn_media.speech import DEFAULT_RATE, ESPEAK_SAMPLE_RATE, Voice, synthesize_mbrola
+
+    if voice not in engine_voices(engine):
+        raise ValueError(f"unknown {engine} voice {voice!r}; choose from {engine_voices(engine)}")
+    if engine == "flite":
+        return flite_speak(text, voice, stretch)
+    return synthesize_mbrola(text, Voice(voice, rate=round(DEFAULT_RATE / stretch))), ESPEAK_SAMPLE_RATE
+
+
 def speak_with(engine: str, arms: Sequence[int], voice: str, template: int = 0,
                stretch: float = 1.0) -> tuple[np.ndarray, int]:
     """Say an instruction with an evaluation engine, phrased like the training phrasings.
@@ -57,6 +92,4 @@ def speak_with(engine: str, arms: Sequence[int], voice: str, template: int = 0,
     """
     from vafn_media.speech import phrase
 
-    if engine != "flite":
-        raise ValueError(f"unknown evaluation engine {engine!r}; available: {available_engines()}")
-    return flite_speak(phrase(arms, template), voice, stretch)
+    return speak_text(engine, phrase(arms, template), voice, stretch)

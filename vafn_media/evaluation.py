@@ -143,7 +143,7 @@ def speech_items(engine: str, count: int, seed: int, heldout: bool = True) -> li
     """Spoken instructions (lengths 1-10, random phrasings) from ``engine``: "espeak" (synthesised in this process)
     or an evaluation engine of :mod:`vafn_media.engines`.
 
-    "fast" renditions are made by the engine itself (espeak: 1.4x its rate; flite: duration stretch 0.7).
+    "fast" renditions are made by the engine itself (espeak: 1.4x its rate; others: duration stretch 0.7).
 
     :param engine: "espeak" or a name from :func:`vafn_media.engines.available_engines`.
     :param count: number of items.
@@ -152,7 +152,7 @@ def speech_items(engine: str, count: int, seed: int, heldout: bool = True) -> li
     """
     from dataclasses import replace
 
-    from vafn_media.engines import FLITE_VOICES, speak_with
+    from vafn_media.engines import engine_voices, speak_with
     from vafn_media.speech import ESPEAK_SAMPLE_RATE, TEMPLATES, sample_voice, speak
     from vafn_media.strips import render_strip
 
@@ -169,7 +169,8 @@ def speech_items(engine: str, count: int, seed: int, heldout: bool = True) -> li
             items.append(SpeechItem(arms, clean, ESPEAK_SAMPLE_RATE, fast, ESPEAK_SAMPLE_RATE, image, template,
                                     voice.full_name))
         else:
-            voice = FLITE_VOICES[i % len(FLITE_VOICES)]
+            voices = engine_voices(engine)
+            voice = voices[i % len(voices)]
             clean, rate = speak_with(engine, arms, voice, template)
             fast, fast_rate = speak_with(engine, arms, voice, template, stretch=0.7)
             items.append(SpeechItem(arms, clean, rate, fast, fast_rate, image, template, voice))

@@ -62,6 +62,8 @@ HELDOUT_VARIANTS: tuple[str, ...] = ("m3", "m5", "f3", "f5", "klatt3", "linda", 
 MBROLA_TRAIN_VOICES: tuple[str, ...] = ("mb-us1", "mb-us3", "mb-en1")
 MBROLA_HELDOUT_VOICES: tuple[str, ...] = ("mb-us2",)
 MBROLA_INSTALL = "apt-get install espeak-ng mbrola mbrola-us1 mbrola-us2 mbrola-us3 mbrola-en1 (contrib, non-free)"
+#: espeak-ng's default speaking rate (words per minute).
+DEFAULT_RATE: int = 175
 #: Ranges of espeak parameters sampled per utterance (inclusive): rate 0.7-1.5x the default 175 wpm, word gaps
 #: (units of 10 ms) up to 150 ms half of the time.
 RATE_RANGE: tuple[int, int] = (122, 262)
@@ -103,7 +105,7 @@ class Voice:
 
     name: str = "en-us"
     variant: str = ""
-    rate: int = 175
+    rate: int = DEFAULT_RATE
     pitch: int = 50
     intonation: int = 50
     wordgap: int = 0
