@@ -39,8 +39,6 @@ ITEM_SEED = 777
 LPC_ORDER, LPC_FRAME_S, F0_RANGE = 18, 0.02, (70.0, 260.0)
 #: Silence between number words said one at a time (s).
 WORD_GAPS_S: tuple[float, ...] = (0.0, 0.1, 0.25)
-#: Share of a word's peak below which its leading and trailing samples count as silence.
-TRIM_LEVEL = 0.01
 #: espeak-ng phoneme mnemonics of each number word: the default (first) and accent-like variants.
 PRONUNCIATIONS: dict[int, tuple[str, ...]] = {
     1: ("w'Vn", "w'0n", "w'@n", "w'an"),
@@ -90,22 +88,14 @@ def espeak_with_pronunciation(arms: tuple[int, ...], voice: str, variant: int) -
     return EspeakSynthesizer.shared().synthesize(text, Voice(*voice.split("+")), phonemes=True)
 
 
-def trim_silence(waveform: np.ndarray) -> np.ndarray:
-    """The clip without leading and trailing samples under :data:`TRIM_LEVEL` of its peak."""
-    loud = np.flatnonzero(np.abs(waveform) > TRIM_LEVEL * np.abs(waveform).max())
-    return waveform[loud[0]:loud[-1] + 1] if len(loud) else waveform
-
-
 def one_word_at_a_time(arms: tuple[int, ...], say: Callable[[str], tuple[np.ndarray, int]],
                        gap_s: float) -> tuple[np.ndarray, int]:
     """The number words of ``arms`` each synthesised alone by ``say``, trimmed and joined by ``gap_s`` of silence."""
-    from vafn_media.speech import NUMBER_WORDS
+    from vafn_media.speech import NUMBER_WORDS, splice_words
 
     words = [say(NUMBER_WORDS[arm]) for arm in arms]
     rate = words[0][1]
-    gap = np.zeros(int(gap_s * rate), np.float32)
-    parts = [part for waveform, _ in words for part in (gap, trim_silence(waveform))][1:]
-    return np.concatenate(parts).astype(np.float32), rate
+    return splice_words([waveform for waveform, _ in words], [gap_s] * (len(words) - 1), rate), rate
 
 
 def accuracy(read: Callable[[np.ndarray, int], tuple[int, ...]], clips: list[tuple[np.ndarray, int]],

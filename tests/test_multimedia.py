@@ -130,6 +130,44 @@ def test_mbrola_share_swaps_only_voices_and_keeps_its_pools_apart():
     assert cache_key(0, "train", 10) != cache_key(0, "train", 10, mbrola=0.3)
 
 
+def test_splice_words_joins_with_gaps_and_cross_fades():
+    from vafn_media.speech import splice_words
+
+    a, b = np.ones(100, np.float32), np.full(80, 0.5, np.float32)
+    quiet = np.concatenate([np.zeros(10, np.float32), a, np.zeros(10, np.float32)])  # trimmed before joining
+    assert len(splice_words([quiet, b], [0.001], rate=10_000)) == 100 + 10 + 80
+    overlapped = splice_words([a, b], [-0.002], rate=10_000)
+    assert len(overlapped) == 100 + 80 - 20 and overlapped[99] == pytest.approx(1.0 - 0.5 * 19 / 20, abs=0.03)
+    assert len(splice_words([a, b], [-1.0], rate=10_000)) == 100 + 80 - 40  # at most half of the shorter word
+    with pytest.raises(ValueError, match="3 words need 2 joins"):
+        splice_words([a, b, a], [0.0])
+
+
+def test_splice_share_changes_only_how_items_are_said():
+    from vafn_media.dataset import cache_key, item_spec
+    from vafn_media.speech import SPLICE_GAP_RANGE, phrase
+
+    plain = [item_spec(0, "train", i) for i in range(200)]
+    spliced = [item_spec(0, "train", i, splice=0.5) for i in range(200)]
+    assert [s.voice for s in plain] == [s.voice for s in spliced] and all(s.joins is None for s in plain)
+    joined = [s for s in spliced if s.joins is not None]
+    assert 70 <= len(joined) <= 130
+    for spec in joined:
+        assert len(spec.joins) == len(phrase(spec.arms, spec.template, spec.empty_phrase).split()) - 1
+        assert all(SPLICE_GAP_RANGE[0] <= g <= SPLICE_GAP_RANGE[1] for g in spec.joins)
+    assert cache_key(0, "train", 10) != cache_key(0, "train", 10, splice=0.5)
+
+
+@needs_espeak
+def test_words_said_one_at_a_time_are_still_read():
+    from vafn_media import InstructionGenerator
+    from vafn_media.speech import ESPEAK_SAMPLE_RATE, Voice, speak
+
+    pad = np.zeros(ESPEAK_SAMPLE_RATE // 4, np.float32)
+    waveform = speak((2, 3, 1), Voice("en-gb-scotland"), 0, joins=(0.08, 0.08))
+    assert InstructionGenerator.load().transcribe(audio=(np.concatenate([pad, waveform, pad]),
+                                                         ESPEAK_SAMPLE_RATE)).arms == (2, 3, 1)
+
 def test_mbrola_voice_without_the_program_names_the_packages(monkeypatch):
     import vafn_media.speech as speech
 

@@ -44,7 +44,7 @@ def test_probe_table_is_written(load_benchmark, tmp_path):
 
 def test_words_said_one_at_a_time_are_joined_by_the_gap_and_read(load_benchmark):
     from vafn_media import InstructionGenerator
-    from vafn_media.speech import ESPEAK_SAMPLE_RATE, EspeakSynthesizer, Voice
+    from vafn_media.speech import ESPEAK_SAMPLE_RATE, EspeakSynthesizer, Voice, trim_silence
 
     module = load_benchmark("speech_invariance")
     words = {}
@@ -54,7 +54,7 @@ def test_words_said_one_at_a_time_are_joined_by_the_gap_and_read(load_benchmark)
         return words[word], ESPEAK_SAMPLE_RATE
 
     waveform, rate = module.one_word_at_a_time((2, 3, 1), say, 0.1)
-    trimmed = [module.trim_silence(words[w]) for w in ("two", "three", "one")]
+    trimmed = [trim_silence(words[w]) for w in ("two", "three", "one")]
     assert rate == ESPEAK_SAMPLE_RATE and all(len(t) < len(words[w]) for t, w in zip(trimmed, ("two", "three", "one")))
     assert len(waveform) == sum(len(t) for t in trimmed) + 2 * int(0.1 * rate)
     assert np.array_equal(waveform[:len(trimmed[0])], trimmed[0])

@@ -47,9 +47,12 @@ class ItemSpec:
     empty_phrase: int
     image_seed: int
     heldout: bool
+    #: Said one word at a time with these joins (:func:`vafn_media.speech.splice_words`); None: one utterance.
+    joins: tuple[float, ...] | None = None
 
 
-def item_spec(seed: int, split: str, index: int, difficulty: str | None = None, mbrola: float = 0.0) -> ItemSpec:
+def item_spec(seed: int, split: str, index: int, difficulty: str | None = None, mbrola: float = 0.0,
+              splice: float = 0.0) -> ItemSpec:
     """The deterministic specification of item ``index`` of ``split``.
 
     :param seed: dataset seed.
@@ -58,8 +61,10 @@ def item_spec(seed: int, split: str, index: int, difficulty: str | None = None, 
     :param difficulty: restrict the length to a paper bucket ("easy", "medium", "hard"); None = uniform 0..10.
     :param mbrola: share of items spoken by an MBROLA voice (held-out ones in "heldout"); 0 leaves every item as it
         was, since the choice is drawn from a stream of its own.
+    :param splice: share of items said one word at a time, joined with random gaps and overlaps in
+        :data:`~vafn_media.speech.SPLICE_GAP_RANGE` (a stream of its own too).
     """
-    from vafn_media.speech import EMPTY_PHRASES, TEMPLATES, mbrola_voice, sample_voice
+    from vafn_media.speech import EMPTY_PHRASES, SPLICE_GAP_RANGE, TEMPLATES, mbrola_voice, phrase, sample_voice
 
     if split not in SPLIT_CODES:
         raise ValueError(f"unknown split {split!r}; choose from {list(SPLIT_CODES)}")
@@ -74,8 +79,14 @@ def item_spec(seed: int, split: str, index: int, difficulty: str | None = None, 
         choice = np.random.default_rng([seed, SPLIT_CODES[split], difficulty_code, index, 3])
         if choice.random() < mbrola:
             voice = mbrola_voice(choice, heldout, voice)
-    return ItemSpec(arms, voice, int(rng.integers(len(TEMPLATES))), int(rng.integers(len(EMPTY_PHRASES))),
-                    int(rng.integers(2**31)), heldout)
+    template, empty_phrase = int(rng.integers(len(TEMPLATES))), int(rng.integers(len(EMPTY_PHRASES)))
+    joins = None
+    if splice > 0:
+        choice = np.random.default_rng([seed, SPLIT_CODES[split], difficulty_code, index, 4])
+        if choice.random() < splice:
+            n_joins = len(phrase(arms, template, empty_phrase).split()) - 1
+            joins = tuple(float(g) for g in np.round(choice.uniform(*SPLICE_GAP_RANGE, n_joins), 4))
+    return ItemSpec(arms, voice, template, empty_phrase, int(rng.integers(2**31)), heldout, joins)
 
 
 def render_item(spec: ItemSpec) -> tuple[np.ndarray, np.ndarray]:
@@ -86,7 +97,7 @@ def render_item(spec: ItemSpec) -> tuple[np.ndarray, np.ndarray]:
     from vafn_media.speech import speak
     from vafn_media.strips import render_strip
 
-    waveform = speak(spec.arms, spec.voice, spec.template, spec.empty_phrase)
+    waveform = speak(spec.arms, spec.voice, spec.template, spec.empty_phrase, spec.joins)
     image = render_strip(spec.arms, np.random.default_rng(spec.image_seed), heldout=spec.heldout)
     return waveform, image
 
@@ -102,11 +113,11 @@ class RawItems:
     specs: list[ItemSpec]
 
 
-def _render_range(args: tuple[int, str, int, int, str | None, float]) -> RawItems:
+def _render_range(args: tuple[int, str, int, int, str | None, float, float]) -> RawItems:
     from vafn_media.speech import ESPEAK_SAMPLE_RATE
 
-    seed, split, start, count, difficulty, mbrola = args
-    specs = [item_spec(seed, split, i, difficulty, mbrola) for i in range(start, start + count)]
+    seed, split, start, count, difficulty, mbrola, splice = args
+    specs = [item_spec(seed, split, i, difficulty, mbrola, splice) for i in range(start, start + count)]
     rendered = [render_item(spec) for spec in specs]
     return RawItems([s.arms for s in specs], [r[0] for r in rendered], ESPEAK_SAMPLE_RATE,
                     [r[1] for r in rendered], specs)
@@ -149,7 +160,7 @@ def generate_raw(seed: int, split: str, count: int, difficulty: str | None = Non
     :param workers: parallel processes.
     """
     jobs = [
-        (seed, split, s, min(SHARD_SIZE, start + count - s), difficulty, 0.0)
+        (seed, split, s, min(SHARD_SIZE, start + count - s), difficulty, 0.0, 0.0)
         for s in range(start, start + count, SHARD_SIZE)
     ]
     done = dict(run_shards(_render_range, jobs, workers))
@@ -158,7 +169,7 @@ def generate_raw(seed: int, split: str, count: int, difficulty: str | None = Non
                     [im for p in parts for im in p.images], [s for p in parts for s in p.specs])
 
 
-def _compact_shard(args: tuple[int, str, int, int, str, float]) -> str:
+def _compact_shard(args: tuple[int, str, int, int, str, float, float]) -> str:
     """Render one shard and store training-ready arrays: log-mel features of the clean utterance (resampled to
     SAMPLE_RATE) and of AUGMENTED_COPIES degraded copies (speed, silences, room, noise, telephone, gain/clipping), and
     canonical strips of the clean and of a Cutout copy of each image."""
@@ -170,8 +181,8 @@ def _compact_shard(args: tuple[int, str, int, int, str, float]) -> str:
     from vafn_media.images import canonical_strip
 
     torch.set_num_threads(1)
-    seed, split, start, count, path, mbrola = args
-    raw = _render_range((seed, split, start, count, None, mbrola))
+    seed, split, start, count, path, mbrola, splice = args
+    raw = _render_range((seed, split, start, count, None, mbrola, splice))
     audio: list[list[np.ndarray]] = [[] for _ in range(1 + AUGMENTED_COPIES)]
     clean, masked = [], []
     for index, waveform, image in zip(range(start, start + count), raw.waveforms, raw.images):
@@ -238,18 +249,19 @@ class TrainingData:
         return cls(np.concatenate(arms), np.concatenate(lengths), audio[0], audio[1:], clean, masked)
 
 
-def cache_key(seed: int, split: str, count: int, mbrola: float = 0.0) -> str:
+def cache_key(seed: int, split: str, count: int, mbrola: float = 0.0, splice: float = 0.0) -> str:
     """Name of a cached dataset, including a hash of the generator's source so stale caches are not reused.
 
     :param seed: dataset seed.
     :param split: split name.
     :param count: number of items.
     :param mbrola: share of items spoken by MBROLA voices.
+    :param splice: share of items said one word at a time.
     """
     digest = source_digest("dataset.py", "speech.py", "strips.py", "images.py", "corruptions.py", "constants.py",
                            "features.py", "augment.py")
-    voices = f"-mbrola{mbrola:g}" if mbrola > 0 else ""
-    return f"{split}-seed{seed}-n{count}{voices}-shard{SHARD_SIZE}-{digest}"
+    shares = (f"-mbrola{mbrola:g}" if mbrola > 0 else "") + (f"-splice{splice:g}" if splice > 0 else "")
+    return f"{split}-seed{seed}-n{count}{shares}-shard{SHARD_SIZE}-{digest}"
 
 
 def source_digest(*names: str) -> str:
@@ -262,7 +274,7 @@ def source_digest(*names: str) -> str:
 
 
 def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CACHE, workers: int = 2,
-                progress: bool = True, mbrola: float = 0.0) -> TrainingData:
+                progress: bool = True, mbrola: float = 0.0, splice: float = 0.0) -> TrainingData:
     """Generate (or reuse) the cached training arrays of a split, one fresh process per shard, with a progress bar.
 
     :param seed: dataset seed.
@@ -272,13 +284,14 @@ def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CAC
     :param workers: parallel processes.
     :param progress: show a tqdm progress bar.
     :param mbrola: share of items spoken by MBROLA voices (:func:`item_spec`).
+    :param splice: share of items said one word at a time (:func:`item_spec`).
     """
     from tqdm import tqdm
 
-    directory = Path(cache_dir) / cache_key(seed, split, count, mbrola)
+    directory = Path(cache_dir) / cache_key(seed, split, count, mbrola, splice)
     directory.mkdir(parents=True, exist_ok=True)
-    jobs = [(seed, split, s, min(SHARD_SIZE, count - s), str(directory / f"shard{s // SHARD_SIZE:04d}.npz"), mbrola)
-            for s in range(0, count, SHARD_SIZE)]
+    jobs = [(seed, split, s, min(SHARD_SIZE, count - s), str(directory / f"shard{s // SHARD_SIZE:04d}.npz"), mbrola,
+             splice) for s in range(0, count, SHARD_SIZE)]
     todo = [job for job in jobs if not os.path.exists(job[4])]
     if todo:
         with tqdm(total=len(jobs), initial=len(jobs) - len(todo), disable=not progress,

@@ -62,6 +62,11 @@ HELDOUT_VARIANTS: tuple[str, ...] = ("m3", "m5", "f3", "f5", "klatt3", "linda", 
 MBROLA_TRAIN_VOICES: tuple[str, ...] = ("mb-us1", "mb-us3", "mb-en1")
 MBROLA_HELDOUT_VOICES: tuple[str, ...] = ("mb-us2",)
 MBROLA_INSTALL = "apt-get install espeak-ng mbrola mbrola-us1 mbrola-us2 mbrola-us3 mbrola-en1 (contrib, non-free)"
+#: Joins of an utterance spoken one word at a time (``speak(joins=...)``): silence between words in seconds, negative
+#: values overlap the words with a linear cross-fade.
+SPLICE_GAP_RANGE: tuple[float, float] = (-0.04, 0.06)
+#: Share of a word's peak below which its leading and trailing samples count as silence.
+TRIM_LEVEL: float = 0.01
 #: espeak-ng's default speaking rate (words per minute).
 DEFAULT_RATE: int = 175
 #: Ranges of espeak parameters sampled per utterance (inclusive): rate 0.7-1.5x the default 175 wpm, word gaps
@@ -236,17 +241,52 @@ class EspeakSynthesizer:
         return np.concatenate(self._chunks).astype(np.float32) / 32768.0
 
 
-def speak(arms: Sequence[int], voice: Voice = Voice(), template: int = 0, empty_phrase: int = 0) -> np.ndarray:
+def trim_silence(waveform: np.ndarray) -> np.ndarray:
+    """The clip without leading and trailing samples under :data:`TRIM_LEVEL` of its peak."""
+    loud = np.flatnonzero(np.abs(waveform) > TRIM_LEVEL * np.abs(waveform).max()) if waveform.size else []
+    return waveform[loud[0]:loud[-1] + 1] if len(loud) else waveform
+
+
+def splice_words(words: Sequence[np.ndarray], gaps_s: Sequence[float], rate: int = ESPEAK_SAMPLE_RATE) -> np.ndarray:
+    """Words said one at a time, trimmed and joined: ``gaps_s[i]`` seconds of silence after word ``i``, or, when
+    negative, that much overlap (a linear cross-fade, at most half of the shorter word).
+
+    :param words: waveforms of single words.
+    :param gaps_s: one join per pair of neighbouring words.
+    :param rate: sample rate of the words.
+    """
+    if len(gaps_s) < len(words) - 1:
+        raise ValueError(f"{len(words)} words need {len(words) - 1} joins, got {len(gaps_s)}")
+    out = trim_silence(np.asarray(words[0], np.float32)) if words else np.zeros(0, np.float32)
+    for word, gap_s in zip(words[1:], gaps_s):
+        word = trim_silence(np.asarray(word, np.float32))
+        gap = int(round(gap_s * rate))
+        if gap >= 0:
+            out = np.concatenate([out, np.zeros(gap, np.float32), word])
+            continue
+        overlap = min(-gap, len(out) // 2, len(word) // 2)
+        fade = np.linspace(1.0, 0.0, overlap, dtype=np.float32)
+        mixed = out[len(out) - overlap:] * fade + word[:overlap] * (1.0 - fade)
+        out = np.concatenate([out[:len(out) - overlap], mixed, word[overlap:]])
+    return out.astype(np.float32)
+
+
+def speak(arms: Sequence[int], voice: Voice = Voice(), template: int = 0, empty_phrase: int = 0,
+          joins: Sequence[float] | None = None) -> np.ndarray:
     """Synthesise a spoken instruction at :data:`ESPEAK_SAMPLE_RATE` (float32), followed by a short silence.
 
     :param arms: 1-based arm ids.
     :param voice: espeak voice settings.
     :param template: phrasing template index.
     :param empty_phrase: phrasing of the empty instruction.
+    :param joins: say each word alone and join the words with these gaps (:func:`splice_words`); None: one utterance.
     """
     text = phrase(arms, template, empty_phrase)
     if voice.name.startswith("mb-"):
-        waveform = synthesize_mbrola(text, voice)
+        def say(words: str) -> np.ndarray:
+            return synthesize_mbrola(words, voice)
     else:
-        waveform = EspeakSynthesizer.shared().synthesize(text, voice)
+        def say(words: str) -> np.ndarray:
+            return EspeakSynthesizer.shared().synthesize(words, voice)
+    waveform = say(text) if joins is None else splice_words([say(word) for word in text.split()], joins)
     return np.concatenate([waveform, np.zeros(int(TRAILING_SILENCE_SECONDS * ESPEAK_SAMPLE_RATE), np.float32)])

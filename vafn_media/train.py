@@ -172,6 +172,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="share of utterances (training and validation) spoken by an MBROLA voice through the "
                              "espeak-ng program (held-out voice us2 in the held-out split); needs Debian's espeak-ng, "
                              "mbrola and mbrola-<voice> packages (0: espeak-ng's own voices only)")
+    parser.add_argument("--splice-probability", type=float, default=0.0,
+                        help="share of training utterances said one word at a time and joined with random gaps and "
+                             "overlaps (vafn_media.speech.SPLICE_GAP_RANGE), for word boundaries no synthesiser makes")
     parser.add_argument("--train-only", choices=("all", *MODALITIES), default="all",
                         help="'image' or 'audio': update only that modality's encoder and adapter; the other path, "
                              "the shared projection and the decoder stay frozen, so the other modality's readings "
@@ -198,9 +201,11 @@ def main(argv=None) -> dict:
     rng = np.random.default_rng(args.seed)
     started = time.time()
     cache = args.cache_dir or DEFAULT_CACHE
-    if not 0 <= args.mbrola_probability <= 1:
-        raise SystemExit(f"--mbrola-probability must be in [0, 1], got {args.mbrola_probability}")
-    train = build_cache(args.seed, "train", args.train_items, cache, args.workers, mbrola=args.mbrola_probability)
+    for name in ("mbrola_probability", "splice_probability"):
+        if not 0 <= getattr(args, name) <= 1:
+            raise SystemExit(f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(args, name)}")
+    train = build_cache(args.seed, "train", args.train_items, cache, args.workers, mbrola=args.mbrola_probability,
+                        splice=args.splice_probability)
     validation = {split: build_cache(args.seed, split, args.val_items, cache, args.workers,
                                      mbrola=args.mbrola_probability) for split in ("test", "heldout")}
     camera = None
