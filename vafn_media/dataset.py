@@ -75,14 +75,18 @@ def item_spec(seed: int, split: str, index: int, difficulty: str | None = None, 
     arms = tuple(int(a) for a in rng.integers(1, NUM_ARMS + 1, length))
     heldout = split == "heldout"
     voice = sample_voice(rng, heldout)
+
+    def stream(purpose: int) -> np.random.Generator:  # draws that leave the item's main stream untouched
+        return np.random.default_rng([seed, SPLIT_CODES[split], difficulty_code, index, purpose])
+
     if mbrola > 0:
-        choice = np.random.default_rng([seed, SPLIT_CODES[split], difficulty_code, index, 3])
+        choice = stream(3)
         if choice.random() < mbrola:
             voice = mbrola_voice(choice, heldout, voice)
     template, empty_phrase = int(rng.integers(len(TEMPLATES))), int(rng.integers(len(EMPTY_PHRASES)))
     joins = None
     if splice > 0:
-        choice = np.random.default_rng([seed, SPLIT_CODES[split], difficulty_code, index, 4])
+        choice = stream(4)
         if choice.random() < splice:
             n_joins = len(phrase(arms, template, empty_phrase).split()) - 1
             joins = tuple(float(g) for g in np.round(choice.uniform(*SPLICE_GAP_RANGE, n_joins), 4))
@@ -290,12 +294,13 @@ def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CAC
 
     directory = Path(cache_dir) / cache_key(seed, split, count, mbrola, splice)
     directory.mkdir(parents=True, exist_ok=True)
-    jobs = [(seed, split, s, min(SHARD_SIZE, count - s), str(directory / f"shard{s // SHARD_SIZE:04d}.npz"), mbrola,
-             splice) for s in range(0, count, SHARD_SIZE)]
-    todo = [job for job in jobs if not os.path.exists(job[4])]
+    starts = range(0, count, SHARD_SIZE)
+    paths = [str(directory / f"shard{s // SHARD_SIZE:04d}.npz") for s in starts]
+    jobs = [(seed, split, s, min(SHARD_SIZE, count - s), path, mbrola, splice) for s, path in zip(starts, paths)]
+    todo = [job for job, path in zip(jobs, paths) if not os.path.exists(path)]
     if todo:
         with tqdm(total=len(jobs), initial=len(jobs) - len(todo), disable=not progress,
                   desc=f"generating {split} data", unit="shard") as bar:
             for _ in run_shards(_compact_shard, todo, workers):
                 bar.update()
-    return TrainingData.load([job[4] for job in jobs])
+    return TrainingData.load(paths)

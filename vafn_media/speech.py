@@ -282,11 +282,9 @@ def speak(arms: Sequence[int], voice: Voice = Voice(), template: int = 0, empty_
     :param joins: say each word alone and join the words with these gaps (:func:`splice_words`); None: one utterance.
     """
     text = phrase(arms, template, empty_phrase)
-    if voice.name.startswith("mb-"):
-        def say(words: str) -> np.ndarray:
-            return synthesize_mbrola(words, voice)
+    synthesize = synthesize_mbrola if voice.name.startswith("mb-") else EspeakSynthesizer.shared().synthesize
+    if joins is None:
+        waveform = synthesize(text, voice)
     else:
-        def say(words: str) -> np.ndarray:
-            return EspeakSynthesizer.shared().synthesize(words, voice)
-    waveform = say(text) if joins is None else splice_words([say(word) for word in text.split()], joins)
+        waveform = splice_words([synthesize(word, voice) for word in text.split()], joins)
     return np.concatenate([waveform, np.zeros(int(TRAILING_SILENCE_SECONDS * ESPEAK_SAMPLE_RATE), np.float32)])
