@@ -130,6 +130,47 @@ def test_mbrola_share_swaps_only_voices_and_keeps_its_pools_apart():
     assert cache_key(0, "train", 10) != cache_key(0, "train", 10, mbrola=0.3)
 
 
+def test_pico_share_follows_mbrola_on_its_stream_and_keeps_its_pools_apart():
+    from vafn_media.dataset import cache_key, item_spec
+    from vafn_media.speech import HELDOUT_VOICES, MBROLA_HELDOUT_VOICES, PICO_HELDOUT_VOICES, PICO_TRAIN_VOICES
+
+    assert not set(PICO_TRAIN_VOICES) & set(PICO_HELDOUT_VOICES)
+    mbrola_only = [item_spec(0, "train", i, mbrola=0.3) for i in range(300)]
+    both = [item_spec(0, "train", i, mbrola=0.3, pico=0.2) for i in range(300)]
+    assert [(s.arms, s.template) for s in mbrola_only] == [(s.arms, s.template) for s in both]
+    changed = [(a, b) for a, b in zip(mbrola_only, both) if a != b]
+    assert 35 <= len(changed) <= 85  # about 20 %, taken from espeak's share only: MBROLA items stay as they were
+    assert all(not a.voice.name.startswith("mb-") and b.voice.name in PICO_TRAIN_VOICES
+               and b.voice.rate == a.voice.rate for a, b in changed)
+    heldout = {item_spec(0, "heldout", i, mbrola=0.3, pico=0.2).voice.name for i in range(300)}
+    assert heldout == set(HELDOUT_VOICES) | set(MBROLA_HELDOUT_VOICES) | set(PICO_HELDOUT_VOICES)
+    assert cache_key(0, "train", 10, mbrola=0.3) != cache_key(0, "train", 10, mbrola=0.3, pico=0.2)
+    with pytest.raises(ValueError, match="sum to at most 1"):
+        item_spec(0, "train", 0, mbrola=0.7, pico=0.4)
+
+
+def test_pico_voice_without_the_program_names_the_package(monkeypatch):
+    import vafn_media.speech as speech
+
+    monkeypatch.setattr(speech.shutil, "which", lambda name: None)
+    with pytest.raises(RuntimeError, match="apt-get install libttspico-utils"):
+        speech.speak((2, 3), speech.Voice("pico-en-US"))
+
+
+@pytest.mark.skipif(shutil.which("pico2wave") is None, reason="needs Debian's libttspico-utils (pico2wave)")
+def test_pico_voice_follows_rate_and_is_an_evaluation_engine_by_its_held_out_voice():
+    from vafn_media.engines import available_engines, engine_voices, speak_text, speak_with
+    from vafn_media.speech import ESPEAK_SAMPLE_RATE, PICO_HELDOUT_VOICES, Voice, speak
+
+    slow = speak((1, 2, 3), Voice("pico-en-US", rate=130))
+    fast = speak((1, 2, 3), Voice("pico-en-US", rate=260))
+    assert slow.dtype == np.float32 and 0.5 * ESPEAK_SAMPLE_RATE < len(fast) < 0.8 * len(slow)
+    assert "pico" in available_engines() and engine_voices("pico") == PICO_HELDOUT_VOICES
+    normal, rate = speak_with("pico", (1, 2, 3), "pico-en-GB")
+    assert rate == ESPEAK_SAMPLE_RATE and np.abs(normal).max() > 0.05
+    with pytest.raises(ValueError, match="unknown pico voice 'pico-en-US'"):
+        speak_text("pico", "two", "pico-en-US")  # a training voice is never an evaluation voice
+
 def test_splice_words_joins_with_gaps_and_cross_fades():
     from vafn_media.speech import splice_words
 

@@ -52,7 +52,7 @@ class ItemSpec:
 
 
 def item_spec(seed: int, split: str, index: int, difficulty: str | None = None, mbrola: float = 0.0,
-              splice: float = 0.0) -> ItemSpec:
+              splice: float = 0.0, pico: float = 0.0) -> ItemSpec:
     """The deterministic specification of item ``index`` of ``split``.
 
     :param seed: dataset seed.
@@ -63,11 +63,16 @@ def item_spec(seed: int, split: str, index: int, difficulty: str | None = None, 
         was, since the choice is drawn from a stream of its own.
     :param splice: share of items said one word at a time, joined with random gaps and overlaps in
         :data:`~vafn_media.speech.SPLICE_GAP_RANGE` (a stream of its own too).
+    :param pico: share of items spoken by a Pico voice (held-out ones in "heldout"), drawn on MBROLA's stream after
+        its share, so ``mbrola + pico`` must not exceed 1 and pico = 0 leaves every item as it was.
     """
-    from vafn_media.speech import EMPTY_PHRASES, SPLICE_GAP_RANGE, TEMPLATES, mbrola_voice, phrase, sample_voice
+    from vafn_media.speech import (EMPTY_PHRASES, SPLICE_GAP_RANGE, TEMPLATES, mbrola_voice, phrase, pico_voice,
+                                   sample_voice)
 
     if split not in SPLIT_CODES:
         raise ValueError(f"unknown split {split!r}; choose from {list(SPLIT_CODES)}")
+    if min(mbrola, pico) < 0 or mbrola + pico > 1:
+        raise ValueError(f"the MBROLA and Pico shares must be >= 0 and sum to at most 1, got {mbrola} and {pico}")
     difficulty_code = 0 if difficulty is None else 1 + list(DIFFICULTY_LENGTHS).index(difficulty)
     rng = np.random.default_rng([seed, SPLIT_CODES[split], difficulty_code, index])
     low, high = (0, MAX_INSTRUCTION_LENGTH) if difficulty is None else DIFFICULTY_LENGTHS[difficulty]
@@ -79,10 +84,13 @@ def item_spec(seed: int, split: str, index: int, difficulty: str | None = None, 
     def stream(purpose: int) -> np.random.Generator:  # draws that leave the item's main stream untouched
         return np.random.default_rng([seed, SPLIT_CODES[split], difficulty_code, index, purpose])
 
-    if mbrola > 0:
+    if mbrola > 0 or pico > 0:
         choice = stream(3)
-        if choice.random() < mbrola:
+        draw = choice.random()
+        if draw < mbrola:
             voice = mbrola_voice(choice, heldout, voice)
+        elif draw < mbrola + pico:
+            voice = pico_voice(choice, heldout, voice)
     template, empty_phrase = int(rng.integers(len(TEMPLATES))), int(rng.integers(len(EMPTY_PHRASES)))
     joins = None
     if splice > 0:
@@ -117,11 +125,11 @@ class RawItems:
     specs: list[ItemSpec]
 
 
-def _render_range(args: tuple[int, str, int, int, str | None, float, float]) -> RawItems:
+def _render_range(args: tuple[int, str, int, int, str | None, float, float, float]) -> RawItems:
     from vafn_media.speech import ESPEAK_SAMPLE_RATE
 
-    seed, split, start, count, difficulty, mbrola, splice = args
-    specs = [item_spec(seed, split, i, difficulty, mbrola, splice) for i in range(start, start + count)]
+    seed, split, start, count, difficulty, mbrola, splice, pico = args
+    specs = [item_spec(seed, split, i, difficulty, mbrola, splice, pico) for i in range(start, start + count)]
     rendered = [render_item(spec) for spec in specs]
     return RawItems([s.arms for s in specs], [r[0] for r in rendered], ESPEAK_SAMPLE_RATE,
                     [r[1] for r in rendered], specs)
@@ -164,7 +172,7 @@ def generate_raw(seed: int, split: str, count: int, difficulty: str | None = Non
     :param workers: parallel processes.
     """
     jobs = [
-        (seed, split, s, min(SHARD_SIZE, start + count - s), difficulty, 0.0, 0.0)
+        (seed, split, s, min(SHARD_SIZE, start + count - s), difficulty, 0.0, 0.0, 0.0)
         for s in range(start, start + count, SHARD_SIZE)
     ]
     done = dict(run_shards(_render_range, jobs, workers))
@@ -185,8 +193,8 @@ def _compact_shard(args: tuple[int, str, int, int, str, float, float]) -> str:
     from vafn_media.images import canonical_strip
 
     torch.set_num_threads(1)
-    seed, split, start, count, path, mbrola, splice = args
-    raw = _render_range((seed, split, start, count, None, mbrola, splice))
+    seed, split, start, count, path, mbrola, splice, pico = args
+    raw = _render_range((seed, split, start, count, None, mbrola, splice, pico))
     audio: list[list[np.ndarray]] = [[] for _ in range(1 + AUGMENTED_COPIES)]
     clean, masked = [], []
     for index, waveform, image in zip(range(start, start + count), raw.waveforms, raw.images):
@@ -253,7 +261,7 @@ class TrainingData:
         return cls(np.concatenate(arms), np.concatenate(lengths), audio[0], audio[1:], clean, masked)
 
 
-def cache_key(seed: int, split: str, count: int, mbrola: float = 0.0, splice: float = 0.0) -> str:
+def cache_key(seed: int, split: str, count: int, mbrola: float = 0.0, splice: float = 0.0, pico: float = 0.0) -> str:
     """Name of a cached dataset, including a hash of the generator's source so stale caches are not reused.
 
     :param seed: dataset seed.
@@ -261,10 +269,12 @@ def cache_key(seed: int, split: str, count: int, mbrola: float = 0.0, splice: fl
     :param count: number of items.
     :param mbrola: share of items spoken by MBROLA voices.
     :param splice: share of items said one word at a time.
+    :param pico: share of items spoken by Pico voices.
     """
     digest = source_digest("dataset.py", "speech.py", "strips.py", "images.py", "corruptions.py", "constants.py",
                            "features.py", "augment.py")
-    shares = (f"-mbrola{mbrola:g}" if mbrola > 0 else "") + (f"-splice{splice:g}" if splice > 0 else "")
+    shares = "".join(f"-{name}{share:g}" for name, share in (("mbrola", mbrola), ("splice", splice), ("pico", pico))
+                     if share > 0)
     return f"{split}-seed{seed}-n{count}{shares}-shard{SHARD_SIZE}-{digest}"
 
 
@@ -278,7 +288,7 @@ def source_digest(*names: str) -> str:
 
 
 def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CACHE, workers: int = 2,
-                progress: bool = True, mbrola: float = 0.0, splice: float = 0.0) -> TrainingData:
+                progress: bool = True, mbrola: float = 0.0, splice: float = 0.0, pico: float = 0.0) -> TrainingData:
     """Generate (or reuse) the cached training arrays of a split, one fresh process per shard, with a progress bar.
 
     :param seed: dataset seed.
@@ -289,14 +299,15 @@ def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CAC
     :param progress: show a tqdm progress bar.
     :param mbrola: share of items spoken by MBROLA voices (:func:`item_spec`).
     :param splice: share of items said one word at a time (:func:`item_spec`).
+    :param pico: share of items spoken by Pico voices (:func:`item_spec`).
     """
     from tqdm import tqdm
 
-    directory = Path(cache_dir) / cache_key(seed, split, count, mbrola, splice)
+    directory = Path(cache_dir) / cache_key(seed, split, count, mbrola, splice, pico)
     directory.mkdir(parents=True, exist_ok=True)
     starts = range(0, count, SHARD_SIZE)
     paths = [str(directory / f"shard{s // SHARD_SIZE:04d}.npz") for s in starts]
-    jobs = [(seed, split, s, min(SHARD_SIZE, count - s), path, mbrola, splice) for s, path in zip(starts, paths)]
+    jobs = [(seed, split, s, min(SHARD_SIZE, count - s), path, mbrola, splice, pico) for s, path in zip(starts, paths)]
     todo = [job for job, path in zip(jobs, paths) if not os.path.exists(path)]
     if todo:
         with tqdm(total=len(jobs), initial=len(jobs) - len(todo), disable=not progress,

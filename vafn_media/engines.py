@@ -2,7 +2,8 @@
 
 Nothing here is used for training. Each engine is an external program found on ``PATH`` (Debian's ``flite``; the
 ``espeak-ng`` program with the ``mbrola-us2`` voice, which ``vafn_media.train --mbrola-probability`` keeps out of
-training); :func:`available_engines` lists the ones present, and callers skip the others.
+training; ``pico2wave`` with the ``en-GB`` voice, which ``--pico-probability`` keeps out of training);
+:func:`available_engines` lists the ones present, and callers skip the others.
 """
 
 from __future__ import annotations
@@ -24,20 +25,23 @@ MBROLA_DIR = Path("/usr/share/mbrola")
 
 def engine_voices(engine: str) -> tuple[str, ...]:
     """The voices an evaluation engine speaks with, in the order items cycle through them."""
-    from vafn_media.speech import MBROLA_HELDOUT_VOICES
+    from vafn_media.speech import MBROLA_HELDOUT_VOICES, PICO_HELDOUT_VOICES
 
-    voices = {"flite": FLITE_VOICES, "mbrola": MBROLA_HELDOUT_VOICES}
+    voices = {"flite": FLITE_VOICES, "mbrola": MBROLA_HELDOUT_VOICES, "pico": PICO_HELDOUT_VOICES}
     if engine not in voices:
         raise ValueError(f"unknown evaluation engine {engine!r}; choose from {list(voices)}")
     return voices[engine]
 
 
 def available_engines() -> list[str]:
-    """Names of the evaluation engines installed on this machine: ``"flite"``, ``"mbrola"`` (held-out voices)."""
+    """Names of the evaluation engines installed on this machine: ``"flite"``; ``"mbrola"`` and ``"pico"`` (their
+    held-out voices)."""
     engines = ["flite"] if shutil.which("flite") else []
     mbrola_voices = [MBROLA_DIR / voice.removeprefix("mb-") for voice in engine_voices("mbrola")]
     if shutil.which("espeak-ng") and all(path.is_dir() for path in mbrola_voices):
         engines.append("mbrola")
+    if shutil.which("pico2wave"):
+        engines.append("pico")
     return engines
 
 
@@ -69,15 +73,16 @@ def speak_text(engine: str, text: str, voice: str, stretch: float = 1.0) -> tupl
     :param engine: a name from :func:`available_engines`.
     :param text: what to say.
     :param voice: one of the engine's :func:`engine_voices`.
-    :param stretch: duration stretch (< 1 is faster; MBROLA: espeak-ng's 175 words per minute divided by it).
+    :param stretch: duration stretch (< 1 is faster; MBROLA and Pico: espeak-ng's 175 words per minute divided by it).
     """
-    from vafn_media.speech import DEFAULT_RATE, ESPEAK_SAMPLE_RATE, Voice, synthesize_mbrola
+    from vafn_media.speech import DEFAULT_RATE, ESPEAK_SAMPLE_RATE, Voice, synthesize_mbrola, synthesize_pico
 
     if voice not in engine_voices(engine):
         raise ValueError(f"unknown {engine} voice {voice!r}; choose from {engine_voices(engine)}")
     if engine == "flite":
         return flite_speak(text, voice, stretch)
-    return synthesize_mbrola(text, Voice(voice, rate=round(DEFAULT_RATE / stretch))), ESPEAK_SAMPLE_RATE
+    synthesize = synthesize_pico if engine == "pico" else synthesize_mbrola
+    return synthesize(text, Voice(voice, rate=round(DEFAULT_RATE / stretch))), ESPEAK_SAMPLE_RATE
 
 
 def speak_with(engine: str, arms: Sequence[int], voice: str, template: int = 0,

@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import ctypes
 import io
+import os
 import shutil
 import subprocess
+import tempfile
 from dataclasses import dataclass
 from collections.abc import Sequence
 
@@ -62,6 +64,11 @@ HELDOUT_VARIANTS: tuple[str, ...] = ("m3", "m5", "f3", "f5", "klatt3", "linda", 
 MBROLA_TRAIN_VOICES: tuple[str, ...] = ("mb-us1", "mb-us3", "mb-en1")
 MBROLA_HELDOUT_VOICES: tuple[str, ...] = ("mb-us2",)
 MBROLA_INSTALL = "apt-get install espeak-ng mbrola mbrola-us1 mbrola-us2 mbrola-us3 mbrola-en1 (contrib, non-free)"
+#: SVOX Pico voices (a third synthesiser, its own speakers), spoken by Debian's ``pico2wave`` program (package
+#: ``libttspico-utils``, non-free): a share of the training data (``--pico-probability``); en-GB is held out.
+PICO_TRAIN_VOICES: tuple[str, ...] = ("pico-en-US",)
+PICO_HELDOUT_VOICES: tuple[str, ...] = ("pico-en-GB",)
+PICO_INSTALL = "apt-get install libttspico-utils (non-free)"
 #: Joins of an utterance spoken one word at a time (``speak(joins=...)``): silence between words in seconds, negative
 #: values overlap the words with a linear cross-fade.
 SPLICE_GAP_RANGE: tuple[float, float] = (-0.04, 0.06)
@@ -147,6 +154,44 @@ def mbrola_voice(rng: np.random.Generator, heldout: bool, base: Voice) -> Voice:
     voices = MBROLA_HELDOUT_VOICES if heldout else MBROLA_TRAIN_VOICES
     return Voice(name=str(voices[rng.integers(len(voices))]), rate=base.rate, pitch=base.pitch,
                  intonation=base.intonation, wordgap=base.wordgap)
+
+
+def pico_voice(rng: np.random.Generator, heldout: bool, base: Voice) -> Voice:
+    """A Pico voice from the training or held-out pool, at ``base``'s rate, pitch and word gap."""
+    voices = PICO_HELDOUT_VOICES if heldout else PICO_TRAIN_VOICES
+    return Voice(name=str(voices[rng.integers(len(voices))]), rate=base.rate, pitch=base.pitch,
+                 intonation=base.intonation, wordgap=base.wordgap)
+
+
+def synthesize_pico(text: str, voice: Voice) -> np.ndarray:
+    """Speak ``text`` with a Pico voice through the pico2wave program; float32 at :data:`ESPEAK_SAMPLE_RATE`.
+
+    The voice's rate and pitch become Pico's ``<speed>`` and ``<pitch>`` levels (espeak's default rate and pitch 50
+    are Pico's 100 %), its word gap a ``<break>`` between words.
+
+    :param text: what to say.
+    :param voice: a voice named ``pico-<language>`` (:data:`PICO_TRAIN_VOICES`, :data:`PICO_HELDOUT_VOICES`).
+    """
+    import soundfile
+
+    from vafn_media.augment import resample
+
+    program = shutil.which("pico2wave")
+    if program is None:
+        raise RuntimeError(f"Pico voices need the pico2wave program: {PICO_INSTALL}")
+    if voice.wordgap > 0:
+        text = f' <break time="{10 * voice.wordgap}ms"/> '.join(text.split())
+    markup = (f'<pitch level="{50 + voice.pitch}"><speed level="{round(100 * voice.rate / DEFAULT_RATE)}">'
+              f"{text}</speed></pitch>")
+    with tempfile.TemporaryDirectory() as directory:
+        path = os.path.join(directory, "speech.wav")
+        result = subprocess.run([program, "-l", voice.name.removeprefix("pico-"), "-w", path, markup],
+                                capture_output=True, timeout=60)
+        if result.returncode != 0 or not os.path.isfile(path):
+            raise RuntimeError(f"pico2wave could not speak with {voice.name!r} "
+                               f"({result.stderr.decode().strip()!r}); install it: {PICO_INSTALL}")
+        waveform, rate = soundfile.read(path, dtype="float32")
+    return resample(waveform, int(rate), ESPEAK_SAMPLE_RATE)
 
 
 def synthesize_mbrola(text: str, voice: Voice) -> np.ndarray:
@@ -282,7 +327,8 @@ def speak(arms: Sequence[int], voice: Voice = Voice(), template: int = 0, empty_
     :param joins: say each word alone and join the words with these gaps (:func:`splice_words`); None: one utterance.
     """
     text = phrase(arms, template, empty_phrase)
-    synthesize = synthesize_mbrola if voice.name.startswith("mb-") else EspeakSynthesizer.shared().synthesize
+    synthesize = (synthesize_mbrola if voice.name.startswith("mb-") else synthesize_pico
+                  if voice.name.startswith("pico-") else EspeakSynthesizer.shared().synthesize)
     if joins is None:
         waveform = synthesize(text, voice)
     else:

@@ -172,6 +172,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="share of utterances (training and validation) spoken by an MBROLA voice through the "
                              "espeak-ng program (held-out voice us2 in the held-out split); needs Debian's espeak-ng, "
                              "mbrola and mbrola-<voice> packages (0: espeak-ng's own voices only)")
+    parser.add_argument("--pico-probability", type=float, default=0.0,
+                        help="share of utterances (training and validation) spoken by an SVOX Pico voice through the "
+                             "pico2wave program (held-out voice en-GB in the held-out split); needs Debian's "
+                             "libttspico-utils package; --mbrola-probability + --pico-probability <= 1")
     parser.add_argument("--splice-probability", type=float, default=0.0,
                         help="share of training utterances said one word at a time and joined with random gaps and "
                              "overlaps (vafn_media.speech.SPLICE_GAP_RANGE), for word boundaries no synthesiser makes")
@@ -201,13 +205,16 @@ def main(argv=None) -> dict:
     rng = np.random.default_rng(args.seed)
     started = time.time()
     cache = args.cache_dir or DEFAULT_CACHE
-    for name in ("mbrola_probability", "splice_probability"):
+    for name in ("mbrola_probability", "pico_probability", "splice_probability"):
         if not 0 <= getattr(args, name) <= 1:
             raise SystemExit(f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(args, name)}")
+    if args.mbrola_probability + args.pico_probability > 1:
+        raise SystemExit("--mbrola-probability + --pico-probability must not exceed 1")
     train = build_cache(args.seed, "train", args.train_items, cache, args.workers, mbrola=args.mbrola_probability,
-                        splice=args.splice_probability)
+                        splice=args.splice_probability, pico=args.pico_probability)
     validation = {split: build_cache(args.seed, split, args.val_items, cache, args.workers,
-                                     mbrola=args.mbrola_probability) for split in ("test", "heldout")}
+                                     mbrola=args.mbrola_probability, pico=args.pico_probability)
+                  for split in ("test", "heldout")}
     camera = None
     if args.camera_probability > 0:
         from vafn_media.camera import build_image_cache
