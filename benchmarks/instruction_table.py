@@ -154,6 +154,13 @@ def cross_modal_probe(generator, items: int, heldout_items) -> dict:
     return results
 
 
+def engine_note(engine: str, voice: str, share: float) -> str:
+    """How the robustness header describes an evaluation engine that can also be trained on (``share`` > 0)."""
+    if share > 0:
+        return f"{engine} = {voice}, held out (this checkpoint trained on its other voices, {share:.0%} of utterances)"
+    return f"{engine} = {voice}, an engine this checkpoint never trained on"
+
+
 def robust_section(generator, items_per_engine: int, seed: int = EVAL_SEED_BASE + 500) -> tuple[list, list]:
     """Per engine x condition: audio and audio+image accuracy (exact, per digit), image alone; markdown + CSV rows."""
     from tqdm import tqdm
@@ -289,13 +296,13 @@ def main() -> None:
         robust_started = time.time()
         lines, rows = robust_section(generator, args.robust_items)
         load = os.getloadavg()
-        mbrola_share = float(generator.metadata.get("args", {}).get("mbrola_probability", 0.0))
-        mbrola = (f"mbrola = MBROLA's held-out voice us2 (this checkpoint trained on its other voices, "
-                  f"{mbrola_share:.0%} of the utterances); flite was never used for training"
-                  if mbrola_share > 0 else "other engines were never used for training")
+        shares = generator.metadata.get("args", {})
+        engines = "; ".join(engine_note(name, voice, float(shares.get(f"{name}_probability", 0)))
+                            for name, voice in (("mbrola", "MBROLA's voice us2"), ("pico", "SVOX Pico's voice en-GB")))
         text = "\n".join([
             f"Robustness of the speech reader: {args.robust_items} held-out instructions (lengths 1-10, random "
-            f"phrasings) per engine; espeak = held-out voices and variants of the training engine; {mbrola}. "
+            f"phrasings) per engine; espeak = held-out voices and variants of the training engine; {engines}; "
+            "flite was never used for training. "
             "Conditions: clean 16 kHz; 8 kHz = 300-3400 Hz band sampled at 8 kHz; "
             "reverb = simulated room, RT60 0.6 s; 10 dB noise = white noise at 10 dB SNR; fast = the engine's own "
             "rate control (espeak 1.4x, others duration x0.7). 0.25 s of silence surrounds every clip. AV = the same "
