@@ -644,3 +644,11 @@ def test_a_crashing_generation_worker_raises_instead_of_hanging():
     assert sorted(result for _, result in run_shards(_crash_on_second_shard, [(0,), (2,)], workers=2)) == [0, 2]
     with pytest.raises(RuntimeError, match=r"worker process died.*unfinished jobs: .*\(1,\)"):
         list(run_shards(_crash_on_second_shard, [(0,), (1,), (2,)], workers=2))
+
+
+def test_robustness_header_says_which_engines_the_checkpoint_trained_on(load_benchmark):
+    module = load_benchmark("instruction_table")
+    unheard = module.engine_note("pico", "SVOX Pico's voice en-GB", 0.0)
+    assert unheard.endswith("an engine this checkpoint never trained on")
+    trained = module.engine_note("mbrola", "MBROLA's voice us2", 0.3)
+    assert "held out" in trained and "30% of utterances" in trained
