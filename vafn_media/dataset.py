@@ -181,7 +181,7 @@ def generate_raw(seed: int, split: str, count: int, difficulty: str | None = Non
                     [im for p in parts for im in p.images], [s for p in parts for s in p.specs])
 
 
-def _compact_shard(args: tuple[int, str, int, int, str, float, float]) -> str:
+def _compact_shard(args: tuple[int, str, int, int, str, float, float, float]) -> str:
     """Render one shard and store training-ready arrays: log-mel features of the clean utterance (resampled to
     SAMPLE_RATE) and of AUGMENTED_COPIES degraded copies (speed, silences, room, noise, telephone, gain/clipping), and
     canonical strips of the clean and of a Cutout copy of each image."""

@@ -14,7 +14,7 @@ import os
 import shutil
 import subprocess
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from collections.abc import Sequence
 
 import numpy as np
@@ -152,15 +152,13 @@ def mbrola_voice(rng: np.random.Generator, heldout: bool, base: Voice) -> Voice:
     espeak-ng's variants shape its own formant voice, so an MBROLA voice has none.
     """
     voices = MBROLA_HELDOUT_VOICES if heldout else MBROLA_TRAIN_VOICES
-    return Voice(name=str(voices[rng.integers(len(voices))]), rate=base.rate, pitch=base.pitch,
-                 intonation=base.intonation, wordgap=base.wordgap)
+    return replace(base, name=str(voices[rng.integers(len(voices))]), variant="")
 
 
 def pico_voice(rng: np.random.Generator, heldout: bool, base: Voice) -> Voice:
     """A Pico voice from the training or held-out pool, at ``base``'s rate, pitch and word gap."""
     voices = PICO_HELDOUT_VOICES if heldout else PICO_TRAIN_VOICES
-    return Voice(name=str(voices[rng.integers(len(voices))]), rate=base.rate, pitch=base.pitch,
-                 intonation=base.intonation, wordgap=base.wordgap)
+    return replace(base, name=str(voices[rng.integers(len(voices))]), variant="")
 
 
 def synthesize_pico(text: str, voice: Voice) -> np.ndarray:
