@@ -75,14 +75,14 @@ def speak_text(engine: str, text: str, voice: str, stretch: float = 1.0) -> tupl
     :param voice: one of the engine's :func:`engine_voices`.
     :param stretch: duration stretch (< 1 is faster; MBROLA and Pico: espeak-ng's 175 words per minute divided by it).
     """
-    from vafn_media.speech import DEFAULT_RATE, ESPEAK_SAMPLE_RATE, Voice, synthesize_mbrola, synthesize_pico
+    from vafn_media.speech import DEFAULT_RATE, ESPEAK_SAMPLE_RATE, Voice, synthesizer_for
 
     if voice not in engine_voices(engine):
         raise ValueError(f"unknown {engine} voice {voice!r}; choose from {engine_voices(engine)}")
     if engine == "flite":
         return flite_speak(text, voice, stretch)
-    synthesize = synthesize_pico if engine == "pico" else synthesize_mbrola
-    return synthesize(text, Voice(voice, rate=round(DEFAULT_RATE / stretch))), ESPEAK_SAMPLE_RATE
+    settings = Voice(voice, rate=round(DEFAULT_RATE / stretch))
+    return synthesizer_for(settings)(text, settings), ESPEAK_SAMPLE_RATE
 
 
 def speak_with(engine: str, arms: Sequence[int], voice: str, template: int = 0,

@@ -15,7 +15,7 @@ import shutil
 import subprocess
 import tempfile
 from dataclasses import dataclass, replace
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -314,6 +314,16 @@ def splice_words(words: Sequence[np.ndarray], gaps_s: Sequence[float], rate: int
     return out.astype(np.float32)
 
 
+def synthesizer_for(voice: Voice) -> Callable[[str, Voice], np.ndarray]:
+    """The function that says text in ``voice`` at :data:`ESPEAK_SAMPLE_RATE`: MBROLA (``mb-``), Pico (``pico-``) or
+    espeak-ng's own voices."""
+    if voice.name.startswith("mb-"):
+        return synthesize_mbrola
+    if voice.name.startswith("pico-"):
+        return synthesize_pico
+    return EspeakSynthesizer.shared().synthesize
+
+
 def speak(arms: Sequence[int], voice: Voice = Voice(), template: int = 0, empty_phrase: int = 0,
           joins: Sequence[float] | None = None) -> np.ndarray:
     """Synthesise a spoken instruction at :data:`ESPEAK_SAMPLE_RATE` (float32), followed by a short silence.
@@ -325,8 +335,7 @@ def speak(arms: Sequence[int], voice: Voice = Voice(), template: int = 0, empty_
     :param joins: say each word alone and join the words with these gaps (:func:`splice_words`); None: one utterance.
     """
     text = phrase(arms, template, empty_phrase)
-    synthesize = (synthesize_mbrola if voice.name.startswith("mb-") else synthesize_pico
-                  if voice.name.startswith("pico-") else EspeakSynthesizer.shared().synthesize)
+    synthesize = synthesizer_for(voice)
     if joins is None:
         waveform = synthesize(text, voice)
     else:
