@@ -125,11 +125,11 @@ class RawItems:
     specs: list[ItemSpec]
 
 
-def _render_range(args: tuple[int, str, int, int, str | None, float, float, float]) -> RawItems:
+def _render_range(args: tuple[int, str, int, int, str | None, tuple[tuple[str, float], ...]]) -> RawItems:
     from vafn_media.speech import ESPEAK_SAMPLE_RATE
 
-    seed, split, start, count, difficulty, mbrola, splice, pico = args
-    specs = [item_spec(seed, split, i, difficulty, mbrola, splice, pico) for i in range(start, start + count)]
+    seed, split, start, count, difficulty, shares = args
+    specs = [item_spec(seed, split, i, difficulty, **dict(shares)) for i in range(start, start + count)]
     rendered = [render_item(spec) for spec in specs]
     return RawItems([s.arms for s in specs], [r[0] for r in rendered], ESPEAK_SAMPLE_RATE,
                     [r[1] for r in rendered], specs)
@@ -172,7 +172,7 @@ def generate_raw(seed: int, split: str, count: int, difficulty: str | None = Non
     :param workers: parallel processes.
     """
     jobs = [
-        (seed, split, s, min(SHARD_SIZE, start + count - s), difficulty, 0.0, 0.0, 0.0)
+        (seed, split, s, min(SHARD_SIZE, start + count - s), difficulty, ())
         for s in range(start, start + count, SHARD_SIZE)
     ]
     done = dict(run_shards(_render_range, jobs, workers))
@@ -181,7 +181,7 @@ def generate_raw(seed: int, split: str, count: int, difficulty: str | None = Non
                     [im for p in parts for im in p.images], [s for p in parts for s in p.specs])
 
 
-def _compact_shard(args: tuple[int, str, int, int, str, float, float, float]) -> str:
+def _compact_shard(args: tuple[int, str, int, int, str, tuple[tuple[str, float], ...]]) -> str:
     """Render one shard and store training-ready arrays: log-mel features of the clean utterance (resampled to
     SAMPLE_RATE) and of AUGMENTED_COPIES degraded copies (speed, silences, room, noise, telephone, gain/clipping), and
     canonical strips of the clean and of a Cutout copy of each image."""
@@ -193,8 +193,8 @@ def _compact_shard(args: tuple[int, str, int, int, str, float, float, float]) ->
     from vafn_media.images import canonical_strip
 
     torch.set_num_threads(1)
-    seed, split, start, count, path, mbrola, splice, pico = args
-    raw = _render_range((seed, split, start, count, None, mbrola, splice, pico))
+    seed, split, start, count, path, shares = args
+    raw = _render_range((seed, split, start, count, None, shares))
     audio: list[list[np.ndarray]] = [[] for _ in range(1 + AUGMENTED_COPIES)]
     clean, masked = [], []
     for index, waveform, image in zip(range(start, start + count), raw.waveforms, raw.images):
@@ -307,7 +307,8 @@ def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CAC
     directory.mkdir(parents=True, exist_ok=True)
     starts = range(0, count, SHARD_SIZE)
     paths = [str(directory / f"shard{s // SHARD_SIZE:04d}.npz") for s in starts]
-    jobs = [(seed, split, s, min(SHARD_SIZE, count - s), path, mbrola, splice, pico) for s, path in zip(starts, paths)]
+    shares = (("mbrola", mbrola), ("splice", splice), ("pico", pico))  # item_spec's keyword arguments (jobs are hashed)
+    jobs = [(seed, split, s, min(SHARD_SIZE, count - s), path, shares) for s, path in zip(starts, paths)]
     todo = [job for job, path in zip(jobs, paths) if not os.path.exists(path)]
     if todo:
         with tqdm(total=len(jobs), initial=len(jobs) - len(todo), disable=not progress,
