@@ -34,8 +34,11 @@ _INK_LEVEL: float = 0.3
 _NOISE_CONTRAST: float = 48.0
 #: Gaussian blur kernel (pixels, at canonical scale) used only to locate the content box.
 _BOX_BLUR = 5
-#: Rows of the low-resolution copy on which the paper level is estimated (median window = its height).
+#: Rows of the low-resolution copy on which the paper level is estimated, and the side of its median window: about
+#: half the copy's height, so light that changes across a short card (one digit, a shadow) is followed as well; a
+#: window as tall as the copy took nearly the whole of a square photo and left the shadow in as "ink".
 _BACKGROUND_ROWS = 9
+_BACKGROUND_WINDOW = 5
 #: Images taller than this are first downscaled to it (speed; the output has IMAGE_HEIGHT rows).
 _WORK_HEIGHT = 4 * IMAGE_HEIGHT
 
@@ -136,8 +139,8 @@ def to_gray(image: np.ndarray) -> np.ndarray:
 
 
 def paper_background(gray: np.ndarray) -> np.ndarray:
-    """The paper (or board) behind the ink, as a smooth image of gray's size: a median over windows about as tall as
-    the image, taken at low resolution, so strokes are ignored but uneven light and shadows are kept.
+    """The paper (or board) behind the ink, as a smooth image of gray's size: a median over windows about half as tall
+    as the image, taken at low resolution, so strokes are ignored but uneven light and shadows are kept.
 
     :param gray: float32 gray image.
     """
@@ -146,7 +149,7 @@ def paper_background(gray: np.ndarray) -> np.ndarray:
     rows = min(_BACKGROUND_ROWS, height)
     cols = max(1, int(round(width * rows / height)))
     small = np.clip(cv2.resize(gray, (cols, rows), interpolation=cv2.INTER_AREA), 0, 255).astype(np.uint8)
-    kernel = 2 * (rows // 2) + 1
+    kernel = min(_BACKGROUND_WINDOW, 2 * (rows // 2) + 1)
     padded = cv2.copyMakeBorder(small, kernel, kernel, kernel, kernel, cv2.BORDER_REFLECT)
     smooth = cv2.medianBlur(padded, kernel)[kernel:-kernel, kernel:-kernel].astype(np.float32)
     return cv2.resize(smooth, (width, height), interpolation=cv2.INTER_LINEAR)
