@@ -45,7 +45,17 @@ def test_recurrent_baseline_trains_and_is_evaluated_on_the_hidden_family(tmp_pat
     monkeypatch.setattr(sys, "argv", [
         str(ROOT / "benchmarks" / "learning.py"), "--algo", "ppo_lstm", "--env", "VAFN/ThreeArmReachHidden-v1",
         "--seeds", "0", "--steps", "64", "--eval-every", "64", "--n-eval", "1", "--n-test", "1",
-        "--hyperparams", '{"n_steps": 64, "batch_size": 32, "n_epochs": 1}', "--out", str(tmp_path)])
+        "--hyperparams", '{"n_steps": 64, "batch_size": 32, "n_epochs": 1}', "--out", str(tmp_path),
+        "--save", str(tmp_path / "models")])
     learning.main()
     summary = json.loads((tmp_path / "ppo_lstm_ThreeArmReachHidden-v1_summary.json").read_text())
     assert summary["algo"] == "ppo_lstm" and summary["n_test"] == 1 and 0.0 <= summary["success"]["mean"] <= 1.0
+    # the adaptation study and online_control.py load what it saved, named or detected
+    from sb3_contrib import RecurrentPPO
+
+    from vafn_sb3.loading import load_model
+
+    (saved,) = (tmp_path / "models").glob("*.zip")
+    for algo in ("ppo_lstm", None):
+        model, key = load_model(saved, algo)
+        assert isinstance(model, RecurrentPPO) and key == "ppo_lstm"

@@ -25,8 +25,13 @@ def _candidates() -> dict[str, type]:
 
     from vafn_sb3 import MAAC, MADDPG, MAMLSAC, MAPPO, MTSAC, SAC
 
-    return {"maml_sac": MAMLSAC, "mtsac": MTSAC, "sac": SAC, "maac": MAAC, "maddpg": MADDPG, "mappo": MAPPO,
-            "sb3_sac": SB3SAC, "td3": TD3, "ppo": PPO}
+    candidates = {"maml_sac": MAMLSAC, "mtsac": MTSAC, "sac": SAC, "maac": MAAC, "maddpg": MADDPG, "mappo": MAPPO,
+                  "sb3_sac": SB3SAC, "td3": TD3, "ppo": PPO}
+    try:  # sb3-contrib comes with the [zoo] extra (rl_zoo3); its RecurrentPPO is the zoo's ppo_lstm
+        from sb3_contrib import RecurrentPPO
+    except ImportError:
+        return candidates
+    return {**candidates, "ppo_lstm": RecurrentPPO}
 
 
 def _zip_entries(path: Path) -> tuple[list[str], dict[str, Any]]:
@@ -40,11 +45,17 @@ def _zip_entries(path: Path) -> tuple[list[str], dict[str, Any]]:
     return names, data
 
 
+def _policy_module(data: dict[str, Any]) -> str:
+    """The module of the policy class named in an SB3 ``data`` JSON ("" when absent)."""
+    policy_class = data.get("policy_class")
+    return str(policy_class.get("__module__", "")) if isinstance(policy_class, dict) else ""
+
+
 def load_model(path: str | Path, algo: str | None = None) -> tuple[Any, str]:
     """``(model, algorithm key)`` of the policy saved at ``path`` (``ValueError`` naming why it cannot load).
 
     :param path: an SB3 ``.zip`` (``model.save``) or a weights-only file (``vafn_sb3.save_weights``).
-    :param algo: force an algorithm key (sac, mtsac, maml_sac, maac, maddpg, mappo, td3, ppo).
+    :param algo: force an algorithm key (sac, mtsac, maml_sac, maac, maddpg, mappo, td3, ppo, ppo_lstm).
     """
     path = Path(path)
     if not path.is_file() and path.with_suffix(".zip").is_file():
@@ -64,6 +75,8 @@ def load_model(path: str | Path, algo: str | None = None) -> tuple[Any, str]:
         order = [algo]
     elif MAML_KEYS <= set(data):
         order = ["maml_sac"]
+    elif "ppo_lstm" in candidates and _policy_module(data).startswith("sb3_contrib.common.recurrent"):
+        order = ["ppo_lstm"]  # PPO-family classes would also load it, without its LSTM state
     else:
         run_algo = path.parent.parent.name  # zoo layout <folder>/<algo>/<EnvName>_<N>/<EnvName>.zip
         order = ([run_algo] if run_algo in candidates else []) + [k for k in candidates if k != "maml_sac"]
