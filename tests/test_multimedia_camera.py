@@ -158,7 +158,6 @@ def test_canonical_strip_flattens_uneven_light():
         assert np.corrcoef(profile, flat.sum(axis=0))[0, 1] > 0.8
 
 
-
 def test_paper_background_follows_light_across_a_square_card():
     """On a blank square card (one digit's photo) the paper estimate must follow the light, not leave a shadow as ink;
     a median window as tall as the low-resolution copy left residuals about twice as large (41 vs 22 grey levels)."""
@@ -170,6 +169,7 @@ def test_paper_background_follows_light_across_a_square_card():
         gray = to_gray(camera.uneven_light(blank, np.random.default_rng(seed), camera.EVAL_LIGHT_DEPTH))
         residuals.append(np.percentile(np.abs(gray - paper_background(gray)), 99))
     assert np.mean(residuals) < 30.0
+
 
 # --- training data -------------------------------------------------------------------------------------------------
 def test_image_cache_and_camera_batches(tmp_path):

@@ -34,10 +34,11 @@ _INK_LEVEL: float = 0.3
 _NOISE_CONTRAST: float = 48.0
 #: Gaussian blur kernel (pixels, at canonical scale) used only to locate the content box.
 _BOX_BLUR = 5
-#: Rows of the low-resolution copy on which the paper level is estimated, and the side of its median window: about
-#: half the copy's height, so light that changes across a short card (one digit, a shadow) is followed as well; a
-#: window as tall as the copy took nearly the whole of a square photo and left the shadow in as "ink".
+#: Rows of the low-resolution copy on which the paper level is estimated.
 _BACKGROUND_ROWS = 9
+#: Side of the median window on that copy: about half its height, so light that changes across a short card (one
+#: digit, a shadow) is followed; a window as tall as the copy took nearly the whole of a square photo and left the
+#: shadow in as "ink".
 _BACKGROUND_WINDOW = 5
 #: Images taller than this are first downscaled to it (speed; the output has IMAGE_HEIGHT rows).
 _WORK_HEIGHT = 4 * IMAGE_HEIGHT
