@@ -652,3 +652,55 @@ def test_robustness_header_says_which_engines_the_checkpoint_trained_on(load_ben
     assert unheard.endswith("an engine this checkpoint never trained on")
     trained = module.engine_note("mbrola", "MBROLA's voice us2", 0.3)
     assert "held out" in trained and "30% of utterances" in trained
+
+
+def test_low_cut_removes_rumble_and_keeps_the_speech_band():
+    from vafn_media.features import low_cut
+
+    t = np.arange(16_000) / 16_000
+    for hz, lo, hi in ((60, 0.0, 0.02), (100, 0.0, 0.1), (1000, 0.95, 1.05)):
+        tone = np.sin(2 * np.pi * hz * t).astype(np.float32)
+        kept = low_cut(tone, 16_000)[4000:]  # after the filter settles
+        assert kept.dtype == np.float32 and lo <= np.abs(kept).max() <= hi, hz
+    assert np.array_equal(low_cut(tone, 16_000, cutoff_hz=0), tone)
+
+
+needs_recordings = pytest.mark.skipif(
+    not all((Path("/usr/share/asterisk/sounds/en_US_f_Allison") / name).is_file()
+            for name in ("digits/1.wav", "digits/2.wav", "digits/3.wav", "vm-and.wav")),
+    reason="needs Debian's asterisk-core-sounds-en-wav (a person's recorded words)")
+
+
+@needs_recordings
+def test_recorded_voice_says_only_its_words_and_is_an_evaluation_engine():
+    from vafn_media.engines import available_engines, engine_voices, recorded_templates, speak_text, speak_with
+    from vafn_media.speech import TEMPLATES, phrase
+
+    assert "recorded" in available_engines() and engine_voices("recorded") == ("allison",)
+    assert 0 in recorded_templates() and len(recorded_templates()) < len(TEMPLATES)
+    assert all("then" not in phrase((1, 2), t) for t in recorded_templates())
+    normal, rate = speak_with("recorded", (1, 2, 3), "allison", template=2)  # 'arm 1, then ...': not sayable
+    fast, fast_rate = speak_with("recorded", (1, 2, 3), "allison", template=2, stretch=0.7)
+    assert rate == fast_rate == 8000 and normal.dtype == np.float32
+    assert 0.6 * len(normal) < len(fast) < 0.8 * len(normal)
+    paused, _ = speak_text("recorded", "one. two. three.", "allison")
+    assert len(paused) > len(speak_text("recorded", "one two three", "allison")[0]) + 0.5 * rate
+    with pytest.raises(ValueError, match=r"cannot say 'arm two' \(no recording of \['arm'\]\)"):
+        speak_text("recorded", "arm two", "allison")
+
+
+@needs_recordings
+def test_reader_reads_a_person_after_cutting_the_low_end(monkeypatch):
+    import vafn_media.features as features
+    from vafn_media import InstructionGenerator
+    from vafn_media.engines import speak_with
+
+    generator = InstructionGenerator.load()
+    said = {}
+    for arms in ((3, 2, 1, 3, 2), (1, 2, 2, 3), (2, 3, 1), (3, 3, 2, 1, 1, 2)):
+        waveform, rate = speak_with("recorded", arms, "allison")
+        pad = np.zeros(rate // 4, np.float32)
+        said[arms] = (np.concatenate([pad, waveform, pad]), rate)
+    assert all(generator.transcribe(audio=clip).arms == arms for arms, clip in said.items())
+    monkeypatch.setattr(features.low_cut, "__defaults__", (0.0,))  # the reader without its low cut
+    assert any(generator.transcribe(audio=clip).arms != arms for arms, clip in said.items())

@@ -23,6 +23,10 @@ HOP_SECONDS: float = 0.010
 N_MELS: int = 40
 F_MIN: float = 20.0
 F_MAX: float = 7_600.0
+#: The reader high-passes audio at this frequency (Hz) before its features: a microphone's strong low-frequency
+#: energy (a person's voice fundamental, room rumble) made it misread a recorded voice that the training engines'
+#: weaker low end never showed it; speech keeps its words above it, as telephone audio shows.
+LOW_CUT_HZ: float = 200.0
 #: Floor added before the log of mel power.
 LOG_EPS: float = 1e-6
 #: Longest accepted utterance (seconds); longer audio is rejected rather than silently truncated.

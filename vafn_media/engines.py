@@ -2,13 +2,16 @@
 
 Nothing here is used for training. Each engine is an external program found on ``PATH`` (Debian's ``flite``; the
 ``espeak-ng`` program with the ``mbrola-us2`` voice, which ``vafn_media.train --mbrola-probability`` keeps out of
-training; ``pico2wave`` with the ``en-GB`` voice, which ``--pico-probability`` keeps out of training);
+training; ``pico2wave`` with the ``en-GB`` voice, which ``--pico-probability`` keeps out of training) or, for
+``recorded``, the words of a person's recorded telephone prompts (Debian's ``asterisk-core-sounds-en-wav``);
 :func:`available_engines` lists the ones present, and callers skip the others.
 """
 
 from __future__ import annotations
 
+import functools
 import os
+import re
 import shutil
 import subprocess
 import tempfile
@@ -21,13 +24,22 @@ import numpy as np
 FLITE_VOICES: tuple[str, ...] = ("slt", "rms", "awb", "kal16", "kal")
 #: MBROLA's voice directory (Debian's ``mbrola-<voice>`` packages).
 MBROLA_DIR = Path("/usr/share/mbrola")
+#: A person's voice: Allison Smith's recorded prompts for the Asterisk PBX (Debian's ``asterisk-core-sounds-en-wav``,
+#: CC BY-SA 3.0), 8 kHz telephone recordings of one word each, read where the package installs them (never shipped).
+RECORDED_DIR = Path("/usr/share/asterisk/sounds/en_US_f_Allison")
+#: The words the recorded voice can say, and their files under :data:`RECORDED_DIR`.
+RECORDED_WORDS: dict[str, str] = {"one": "digits/1.wav", "two": "digits/2.wav", "three": "digits/3.wav",
+                                  "and": "vm-and.wav"}
+#: Pause after a recorded word by the punctuation that follows it: words read one at a time, as a person would.
+RECORDED_PAUSES_S: dict[str, float] = {"": 0.12, ",": 0.25, ".": 0.45}
 
 
 def engine_voices(engine: str) -> tuple[str, ...]:
     """The voices an evaluation engine speaks with, in the order items cycle through them."""
     from vafn_media.speech import MBROLA_HELDOUT_VOICES, PICO_HELDOUT_VOICES
 
-    voices = {"flite": FLITE_VOICES, "mbrola": MBROLA_HELDOUT_VOICES, "pico": PICO_HELDOUT_VOICES}
+    voices = {"flite": FLITE_VOICES, "mbrola": MBROLA_HELDOUT_VOICES, "pico": PICO_HELDOUT_VOICES,
+              "recorded": ("allison",)}
     if engine not in voices:
         raise ValueError(f"unknown evaluation engine {engine!r}; choose from {list(voices)}")
     return voices[engine]
@@ -35,13 +47,15 @@ def engine_voices(engine: str) -> tuple[str, ...]:
 
 def available_engines() -> list[str]:
     """Names of the evaluation engines installed on this machine: ``"flite"``; ``"mbrola"`` and ``"pico"`` (their
-    held-out voices)."""
+    held-out voices); ``"recorded"`` (a person's recorded words)."""
     engines = ["flite"] if shutil.which("flite") else []
     mbrola_voices = [MBROLA_DIR / voice.removeprefix("mb-") for voice in engine_voices("mbrola")]
     if shutil.which("espeak-ng") and all(path.is_dir() for path in mbrola_voices):
         engines.append("mbrola")
     if shutil.which("pico2wave"):
         engines.append("pico")
+    if all((RECORDED_DIR / name).is_file() for name in RECORDED_WORDS.values()):
+        engines.append("recorded")
     return engines
 
 
@@ -67,6 +81,49 @@ def flite_speak(text: str, voice: str = "slt", stretch: float = 1.0) -> tuple[np
     return waveform, int(rate)
 
 
+@functools.cache
+def _recorded_word(word: str) -> tuple[np.ndarray, int]:
+    import soundfile
+
+    path = RECORDED_DIR / RECORDED_WORDS[word]
+    if not path.is_file():
+        raise RuntimeError(f"{path} is missing (Debian/Ubuntu: apt-get install asterisk-core-sounds-en-wav)")
+    waveform, rate = soundfile.read(path, dtype="float32")
+    return waveform, int(rate)
+
+
+def recorded_speak(text: str, stretch: float = 1.0) -> tuple[np.ndarray, int]:
+    """Say ``text`` with a person's recorded words (:data:`RECORDED_WORDS`), joined by the pauses of
+    :data:`RECORDED_PAUSES_S`; returns (float32 waveform, sample rate).
+
+    :param text: words the recordings hold, with commas and full stops.
+    :param stretch: duration stretch (< 1 is faster: the whole clip is time-compressed, its pitch kept).
+    """
+    from vafn_media.speech import splice_words
+
+    words = re.findall(r"([a-z]+)\s*([,.]?)", text.lower())
+    missing = sorted({word for word, _ in words if word not in RECORDED_WORDS})
+    if missing or not words:
+        raise ValueError(f"the recorded voice cannot say {text!r} (no recording of {missing}); it says only "
+                         f"{sorted(RECORDED_WORDS)}")
+    recordings = [_recorded_word(word) for word, _ in words]
+    rate = recordings[0][1]
+    waveform = splice_words([w for w, _ in recordings], [RECORDED_PAUSES_S[mark] for _, mark in words[:-1]], rate)
+    if stretch != 1.0:
+        import librosa
+
+        waveform = librosa.effects.time_stretch(waveform, rate=1.0 / stretch).astype(np.float32)
+    return waveform, rate
+
+
+def recorded_templates() -> tuple[int, ...]:
+    """Indices of the phrasing templates (:data:`vafn_media.speech.TEMPLATES`) the recorded voice can say."""
+    from vafn_media.speech import TEMPLATES
+
+    return tuple(index for index, parts in enumerate(TEMPLATES)
+                 if all(word in RECORDED_WORDS for word in re.findall(r"[a-z]+", " ".join(parts))))
+
+
 def speak_text(engine: str, text: str, voice: str, stretch: float = 1.0) -> tuple[np.ndarray, int]:
     """Say ``text`` with an evaluation engine; returns (float32 waveform, sample rate).
 
@@ -81,6 +138,8 @@ def speak_text(engine: str, text: str, voice: str, stretch: float = 1.0) -> tupl
         raise ValueError(f"unknown {engine} voice {voice!r}; choose from {engine_voices(engine)}")
     if engine == "flite":
         return flite_speak(text, voice, stretch)
+    if engine == "recorded":
+        return recorded_speak(text, stretch)
     settings = Voice(voice, rate=round(DEFAULT_RATE / stretch))
     return synthesizer_for(settings)(text, settings), ESPEAK_SAMPLE_RATE
 
@@ -92,9 +151,13 @@ def speak_with(engine: str, arms: Sequence[int], voice: str, template: int = 0,
     :param engine: a name from :func:`available_engines`.
     :param arms: 1-based arm ids.
     :param voice: the engine's voice.
-    :param template: phrasing template index (see :data:`vafn_media.speech.TEMPLATES`).
+    :param template: phrasing template index (see :data:`vafn_media.speech.TEMPLATES`; the recorded voice cycles
+        through the ones it can say, :func:`recorded_templates`).
     :param stretch: duration stretch (< 1 is faster).
     """
     from vafn_media.speech import phrase
 
+    if engine == "recorded":
+        sayable = recorded_templates()
+        template = sayable[template % len(sayable)]
     return speak_text(engine, phrase(arms, template), voice, stretch)

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from vafn_media.constants import F_MAX, F_MIN, HOP_SECONDS, LOG_EPS, N_MELS, WIN_SECONDS
+from vafn_media.constants import F_MAX, F_MIN, HOP_SECONDS, LOG_EPS, LOW_CUT_HZ, N_MELS, WIN_SECONDS
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
@@ -25,6 +25,28 @@ def frame_params(sample_rate: int) -> tuple[int, int, int]:
     win = int(round(WIN_SECONDS * sample_rate))
     hop = int(round(HOP_SECONDS * sample_rate))
     return 1 << (win - 1).bit_length(), win, hop
+
+
+@lru_cache(maxsize=8)
+def _low_cut_filter(sample_rate: int, cutoff_hz: float) -> np.ndarray:
+    from scipy.signal import butter
+
+    return butter(4, cutoff_hz, btype="highpass", fs=sample_rate, output="sos")
+
+
+def low_cut(waveform: np.ndarray, sample_rate: int, cutoff_hz: float = LOW_CUT_HZ) -> np.ndarray:
+    """The waveform high-passed at ``cutoff_hz`` (4th-order Butterworth; what the reader hears, see
+    :data:`vafn_media.constants.LOW_CUT_HZ`).
+
+    :param waveform: float32 samples.
+    :param sample_rate: their rate in Hz.
+    :param cutoff_hz: cut-off frequency (0: unchanged).
+    """
+    from scipy.signal import sosfilt
+
+    if cutoff_hz <= 0:
+        return np.asarray(waveform, np.float32)
+    return sosfilt(_low_cut_filter(sample_rate, cutoff_hz), waveform).astype(np.float32)
 
 
 @lru_cache(maxsize=8)

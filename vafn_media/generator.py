@@ -140,10 +140,10 @@ class InstructionGenerator:
         :param sample_rate: its rate in Hz.
         """
         from vafn_media.augment import resample
-        from vafn_media.features import log_mel
+        from vafn_media.features import log_mel, low_cut
 
         torch = self._torch
-        waveform = resample(waveform, sample_rate, SAMPLE_RATE)
+        waveform = low_cut(resample(waveform, sample_rate, SAMPLE_RATE), SAMPLE_RATE)
         sample_rate = SAMPLE_RATE
         with torch.inference_mode():
             features = log_mel(waveform, sample_rate)
