@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> list[tuple[str, str, float]]:
     from vafn_media.decoding import greedy_decode
     from vafn_media.engines import available_engines, speak_text
     from vafn_media.evaluation import speech_items
-    from vafn_media.features import log_mel
+    from vafn_media.features import audio_features
     from vafn_media.speech import ESPEAK_SAMPLE_RATE, NUMBER_WORDS, EspeakSynthesizer, Voice
 
     torch.set_num_threads(1)
@@ -140,7 +140,7 @@ def main(argv: list[str] | None = None) -> list[tuple[str, str, float]]:
 
     def read_warped(factor: float) -> Callable[[np.ndarray, int], tuple[int, ...]]:
         def run(waveform: np.ndarray, rate: int) -> tuple[int, ...]:
-            features = warp_vocal_tract(log_mel(resample(waveform, rate, SAMPLE_RATE), SAMPLE_RATE)[0].numpy(), factor)
+            features = warp_vocal_tract(audio_features(resample(waveform, rate, SAMPLE_RATE))[0].numpy(), factor)
             with torch.inference_mode():
                 phi, _ = generator.model.encode("audio", torch.from_numpy(features)[None],
                                                 torch.tensor([features.shape[1]]))

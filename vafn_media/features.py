@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from vafn_media.constants import F_MAX, F_MIN, HOP_SECONDS, LOG_EPS, LOW_CUT_HZ, N_MELS, WIN_SECONDS
+from vafn_media.constants import F_MAX, F_MIN, HOP_SECONDS, LOG_EPS, LOW_CUT_HZ, N_MELS, SAMPLE_RATE, WIN_SECONDS
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
@@ -130,3 +130,14 @@ def log_mel(waveform: np.ndarray, sample_rate: int) -> torch.Tensor:
     centered = features - mean
     var = (centered ** 2).sum(-1, keepdim=True) / count
     return centered.div_(torch.sqrt(var + 1e-5))
+
+
+def audio_features(waveform: np.ndarray) -> torch.Tensor:
+    """What the reader reads of a clip at SAMPLE_RATE: :func:`low_cut`, then :func:`log_mel` (1, N_MELS, T).
+
+    Training features skip the cut (:mod:`vafn_media.dataset`): the cut corrects, at test time, a reader trained
+    without it; an audio path fine-tuned on cut features read a person's voice and SVOX Pico worse (docs/multimedia.md).
+
+    :param waveform: float32 samples at SAMPLE_RATE.
+    """
+    return log_mel(low_cut(waveform, SAMPLE_RATE), SAMPLE_RATE)

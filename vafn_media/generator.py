@@ -140,13 +140,11 @@ class InstructionGenerator:
         :param sample_rate: its rate in Hz.
         """
         from vafn_media.augment import resample
-        from vafn_media.features import log_mel, low_cut
+        from vafn_media.features import audio_features
 
         torch = self._torch
-        waveform = low_cut(resample(waveform, sample_rate, SAMPLE_RATE), SAMPLE_RATE)
-        sample_rate = SAMPLE_RATE
         with torch.inference_mode():
-            features = log_mel(waveform, sample_rate)
+            features = audio_features(resample(waveform, sample_rate, SAMPLE_RATE))
             if self._audio_inference is not None:
                 return self._audio_inference(features)[0]
             phi, _ = self.model.encode("audio", features, torch.tensor([features.shape[-1]]))
