@@ -83,6 +83,7 @@ HIDDEN_PANEL = Panel(
         StudyMethod("maddpg", "maddpg", HIDDEN_ENV),
         StudyMethod("maac", "maac", HIDDEN_ENV, hyperparams={"train_freq": 4}),
         StudyMethod("sac_history4", "sac", HIDDEN_ENV, "zero-shot", env_kwargs={"history": 4}),
+        StudyMethod("ppo_lstm", "ppo_lstm", HIDDEN_ENV, "zero-shot"),
         StudyMethod("goal_mappo_infer_probe", "mappo", GOAL_ENV, "infer-probe"),
         StudyMethod("goal_mappo_infer_learned", "mappo", GOAL_ENV, "infer-learned",
                     models_from="goal_mappo_infer_probe"),
