@@ -682,6 +682,8 @@ def test_recorded_voice_says_only_its_words_and_is_an_evaluation_engine():
     normal, rate = speak_with("recorded", (1, 2, 3), "allison", template=2)  # 'arm 1, then ...': not sayable
     fast, fast_rate = speak_with("recorded", (1, 2, 3), "allison", template=2, stretch=0.7)
     assert rate == fast_rate == 8000 and normal.dtype == np.float32
+    edge = rate // 20  # the first and last recordings keep their own room silence (about 0.1 s)
+    assert max(np.abs(normal[:edge]).max(), np.abs(normal[-edge:]).max()) < 0.02 * np.abs(normal).max()
     assert 0.6 * len(normal) < len(fast) < 0.8 * len(normal)
     paused, _ = speak_text("recorded", "one. two. three.", "allison")
     assert len(paused) > len(speak_text("recorded", "one two three", "allison")[0]) + 0.5 * rate

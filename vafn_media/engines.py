@@ -94,12 +94,13 @@ def _recorded_word(word: str) -> tuple[np.ndarray, int]:
 
 def recorded_speak(text: str, stretch: float = 1.0) -> tuple[np.ndarray, int]:
     """Say ``text`` with a person's recorded words (:data:`RECORDED_WORDS`), joined by the pauses of
-    :data:`RECORDED_PAUSES_S`; returns (float32 waveform, sample rate).
+    :data:`RECORDED_PAUSES_S` and framed by the first recording's lead-in and the last one's tail (their room
+    silence); returns (float32 waveform, sample rate).
 
     :param text: words the recordings hold, with commas and full stops.
     :param stretch: duration stretch (< 1 is faster: the whole clip is time-compressed, its pitch kept).
     """
-    from vafn_media.speech import splice_words
+    from vafn_media.speech import sound_span, splice_words
 
     words = re.findall(r"([a-z]+)\s*([,.]?)", text.lower())
     missing = sorted({word for word, _ in words if word not in RECORDED_WORDS})
@@ -108,7 +109,9 @@ def recorded_speak(text: str, stretch: float = 1.0) -> tuple[np.ndarray, int]:
                          f"{sorted(RECORDED_WORDS)}")
     recordings = [_recorded_word(word) for word, _ in words]
     rate = recordings[0][1]
-    waveform = splice_words([w for w, _ in recordings], [RECORDED_PAUSES_S[mark] for _, mark in words[:-1]], rate)
+    first, last = recordings[0][0], recordings[-1][0]
+    spoken = splice_words([w for w, _ in recordings], [RECORDED_PAUSES_S[mark] for _, mark in words[:-1]], rate)
+    waveform = np.concatenate([first[:sound_span(first).start], spoken, last[sound_span(last).stop:]])
     if stretch != 1.0:
         import librosa
 

@@ -284,10 +284,16 @@ class EspeakSynthesizer:
         return np.concatenate(self._chunks).astype(np.float32) / 32768.0
 
 
+def sound_span(waveform: np.ndarray) -> slice:
+    """The part of the clip between its first and last sample over :data:`TRIM_LEVEL` of its peak (all of it if
+    none is)."""
+    loud = np.flatnonzero(np.abs(waveform) > TRIM_LEVEL * np.abs(waveform).max()) if waveform.size else []
+    return slice(int(loud[0]), int(loud[-1]) + 1) if len(loud) else slice(0, len(waveform))
+
+
 def trim_silence(waveform: np.ndarray) -> np.ndarray:
     """The clip without leading and trailing samples under :data:`TRIM_LEVEL` of its peak."""
-    loud = np.flatnonzero(np.abs(waveform) > TRIM_LEVEL * np.abs(waveform).max()) if waveform.size else []
-    return waveform[loud[0]:loud[-1] + 1] if len(loud) else waveform
+    return waveform[sound_span(waveform)]
 
 
 def splice_words(words: Sequence[np.ndarray], gaps_s: Sequence[float], rate: int = ESPEAK_SAMPLE_RATE) -> np.ndarray:
