@@ -282,6 +282,7 @@ def main() -> None:
     """Run the benchmark, print the tables, write markdown and CSV."""
     import torch
 
+    from vafn_media.engines import RECORDED_PAUSES_S, recorded_templates
     from vafn_media.generator import InstructionGenerator
 
     args = parse_args()
@@ -299,13 +300,15 @@ def main() -> None:
         shares = generator.metadata.get("args", {})
         engines = "; ".join(engine_note(name, voice, float(shares.get(f"{name}_probability", 0)))
                             for name, voice in (("mbrola", "MBROLA's voice us2"), ("pico", "SVOX Pico's voice en-GB")))
+        pause, comma, stop = (RECORDED_PAUSES_S[mark] for mark in ("", ",", "."))
         text = "\n".join([
             f"Robustness of the speech reader: {args.robust_items} held-out instructions (lengths 1-10, random "
             f"phrasings) per engine; espeak = held-out voices and variants of the training engine; {engines}; "
             "flite was never used for training; recorded = a person's voice, never used for training (Allison "
-            "Smith's Asterisk prompts: 8 kHz recordings of single words, joined with pauses of 0.12 s, 0.25 s after "
-            "a comma and 0.45 s after a full stop, in the 4 phrasings they can say; its fast rendition is the "
-            "recording time-compressed by a phase vocoder, not a person speaking fast). "
+            f"Smith's Asterisk prompts: 8 kHz recordings of single words, joined with pauses of {pause} s, {comma} s "
+            f"after a comma and {stop} s after a full stop, in the {len(recorded_templates())} phrasings they can "
+            "say; its fast rendition is the recording time-compressed by a phase vocoder, not a person speaking "
+            "fast). "
             "Conditions: clean 16 kHz; 8 kHz = 300-3400 Hz band sampled at 8 kHz; "
             "reverb = simulated room, RT60 0.6 s; 10 dB noise = white noise at 10 dB SNR; fast = the engine's own "
             "rate control (espeak 1.4x, others duration x0.7). 0.25 s of silence surrounds every clip. AV = the same "
