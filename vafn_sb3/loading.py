@@ -1,13 +1,17 @@
 """Load any saved policy (SB3 zip or weights-only file) without knowing its algorithm, and say what it was trained on.
 
 ``load_model`` reads the file's own description first: a weights-only file names its algorithm; an SB3 zip of MAML-SAC
-holds its meta-learning hyperparameters; a zoo run's folder ``<algo>/<EnvName>_<N>/`` names the algorithm. Otherwise
-every vafn and SB3 algorithm is tried in turn; the error lists why each one refused the file.
+holds its meta-learning hyperparameters; an SB3 zip names its policy class, which narrows the algorithms to those with
+that policy; a zoo run's folder ``<algo>/<EnvName>_<N>/`` names the algorithm. The candidates are then tried in turn,
+the others after them; the error lists why each one refused the file.
 """
 
 from __future__ import annotations
 
+import base64
+import binascii
 import json
+import pickletools
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -45,10 +49,28 @@ def _zip_entries(path: Path) -> tuple[list[str], dict[str, Any]]:
     return names, data
 
 
-def _policy_module(data: dict[str, Any]) -> str:
-    """The module of the policy class named in an SB3 ``data`` JSON ("" when absent)."""
+def saved_policy_class(data: dict[str, Any]) -> tuple[str, str] | None:
+    """``(module, class name)`` of the policy class an SB3 ``data`` JSON names (None when it does not say).
+
+    SB3 stores the class as a base64 pickle; a class pickled by reference is its module and qualified name, read here
+    from the pickle's opcodes without unpickling it (so nothing in the file runs).
+    """
     policy_class = data.get("policy_class")
-    return str(policy_class.get("__module__", "")) if isinstance(policy_class, dict) else ""
+    if not isinstance(policy_class, dict) or not isinstance(policy_class.get(":serialized:"), str):
+        return None
+    try:
+        raw = base64.b64decode(policy_class[":serialized:"], validate=True)
+        strings = [arg for _, arg, _ in pickletools.genops(raw) if isinstance(arg, str)]
+    except (binascii.Error, ValueError):
+        return None
+    if len(strings) < 2 or strings[0] != policy_class.get("__module__"):
+        return None  # not a by-reference class: nothing to match against
+    return strings[0], strings[1]
+
+
+def _policy_classes(algorithm: type) -> set[tuple[str, str]]:
+    """``(module, class name)`` of every policy an algorithm class accepts by alias."""
+    return {(policy.__module__, policy.__qualname__) for policy in algorithm.policy_aliases.values()}
 
 
 def load_model(path: str | Path, algo: str | None = None) -> tuple[Any, str]:
@@ -75,11 +97,14 @@ def load_model(path: str | Path, algo: str | None = None) -> tuple[Any, str]:
         order = [algo]
     elif MAML_KEYS <= set(data):
         order = ["maml_sac"]
-    elif "ppo_lstm" in candidates and _policy_module(data).startswith("sb3_contrib.common.recurrent"):
-        order = ["ppo_lstm"]  # PPO-family classes would also load it, without its LSTM state
     else:
+        # Algorithms whose policies include the saved one first (another class may load the file and run it wrongly:
+        # PPO would load a RecurrentPPO zip without its LSTM state), the zoo run's own algorithm first among them.
+        saved = saved_policy_class(data)
+        matching = [key for key in candidates if saved in _policy_classes(candidates[key])]
         run_algo = path.parent.parent.name  # zoo layout <folder>/<algo>/<EnvName>_<N>/<EnvName>.zip
-        order = ([run_algo] if run_algo in candidates else []) + [k for k in candidates if k != "maml_sac"]
+        first = [run_algo] if run_algo in candidates and (not matching or run_algo in matching) else []
+        order = first + [key for key in matching + list(candidates) if key != "maml_sac"]
     failures = []
     for key in dict.fromkeys(order):
         try:
