@@ -665,6 +665,22 @@ def test_low_cut_removes_rumble_and_keeps_the_speech_band():
     assert np.array_equal(low_cut(tone, 16_000, cutoff_hz=0), tone)
 
 
+
+def test_the_reading_does_not_depend_on_the_recording_level(generator, sample):
+    """Every clip is read at READ_PEAK: the same words recorded 30 dB quieter or 6 dB louder read the same."""
+    from vafn_media.constants import READ_PEAK
+    from vafn_media.features import at_peak
+
+    arms, waveform, rate, _ = sample
+    scaled = at_peak(waveform * 3.0)
+    assert scaled.dtype == np.float32 and np.isclose(np.abs(scaled).max(), READ_PEAK)
+    assert np.array_equal(at_peak(np.zeros(8, np.float32)), np.zeros(8, np.float32))
+    reference = generator.transcribe(audio=(waveform, rate))
+    assert reference.arms == arms
+    for gain in (10 ** (-30 / 20), 0.5 / np.abs(waveform).max() * 10 ** (6 / 20) * 0.99):
+        other = generator.transcribe(audio=(waveform * np.float32(gain), rate))
+        assert other.arms == arms and abs(other.confidence - reference.confidence) < 1e-3, gain
+
 needs_recordings = pytest.mark.skipif(
     not all((Path("/usr/share/asterisk/sounds/en_US_f_Allison") / name).is_file()
             for name in ("digits/1.wav", "digits/2.wav", "digits/3.wav", "vm-and.wav")),
@@ -692,17 +708,29 @@ def test_recorded_voice_says_only_its_words_and_is_an_evaluation_engine():
 
 
 @needs_recordings
-def test_reader_reads_a_person_after_cutting_the_low_end(monkeypatch):
+def test_reader_reads_a_person_in_noise_and_reverb_only_with_its_low_cut_and_level(monkeypatch):
+    """A person's recorded words, clean, in a reverberant room and in 10 dB noise (fixed seeds): read right with the
+    reader's two test-time corrections, and not without them (the cut matters in noise, the level in reverb)."""
     import vafn_media.features as features
     from vafn_media import InstructionGenerator
+    from vafn_media.augment import apply_condition
     from vafn_media.engines import speak_with
 
     generator = InstructionGenerator.load()
     said = {}
-    for arms in ((3, 2, 1, 3, 2), (1, 2, 2, 3), (2, 3, 1), (3, 3, 2, 1, 1, 2)):
+    for arms in ((3, 2, 1, 3, 2), (1, 2, 2, 3), (2, 3, 1), (3, 3, 2, 1, 1, 2), (2, 1, 3, 3), (1, 3, 2)):
         waveform, rate = speak_with("recorded", arms, "allison")
         pad = np.zeros(rate // 4, np.float32)
-        said[arms] = (np.concatenate([pad, waveform, pad]), rate)
-    assert all(generator.transcribe(audio=clip).arms == arms for arms, clip in said.items())
-    monkeypatch.setattr(features.low_cut, "__defaults__", (0.0,))  # the reader without its low cut
-    assert any(generator.transcribe(audio=clip).arms != arms for arms, clip in said.items())
+        for condition in ("clean", "reverb", "10 dB noise"):
+            said[arms, condition] = apply_condition(np.concatenate([pad, waveform, pad]), rate, condition,
+                                                    np.random.default_rng(sum(arms)))
+
+    def misread(condition: str) -> int:
+        return sum(generator.transcribe(audio=clip).arms != arms for (arms, c), clip in said.items() if c == condition)
+
+    assert misread("clean") == misread("reverb") == misread("10 dB noise") == 0
+    with monkeypatch.context() as patch:
+        patch.setattr(features.low_cut, "__defaults__", (0.0,))  # the reader without its low cut
+        assert misread("10 dB noise") > 0
+    monkeypatch.setattr(features, "at_peak", lambda waveform: waveform)  # ... without reading at READ_PEAK
+    assert misread("reverb") > 0

@@ -11,7 +11,17 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from vafn_media.constants import F_MAX, F_MIN, HOP_SECONDS, LOG_EPS, LOW_CUT_HZ, N_MELS, SAMPLE_RATE, WIN_SECONDS
+from vafn_media.constants import (
+    F_MAX,
+    F_MIN,
+    HOP_SECONDS,
+    LOG_EPS,
+    LOW_CUT_HZ,
+    N_MELS,
+    READ_PEAK,
+    SAMPLE_RATE,
+    WIN_SECONDS,
+)
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
@@ -47,6 +57,17 @@ def low_cut(waveform: np.ndarray, sample_rate: int, cutoff_hz: float = LOW_CUT_H
     if cutoff_hz <= 0:
         return np.asarray(waveform, np.float32)
     return sosfilt(_low_cut_filter(sample_rate, cutoff_hz), waveform).astype(np.float32)
+
+
+def at_peak(waveform: np.ndarray, peak: float = READ_PEAK) -> np.ndarray:
+    """The waveform scaled so that its largest magnitude is ``peak`` (unchanged when it is all zeros; see
+    :data:`vafn_media.constants.READ_PEAK`).
+
+    :param waveform: float32 samples.
+    :param peak: the peak to scale to.
+    """
+    largest = float(np.abs(waveform).max()) if waveform.size else 0.0
+    return np.asarray(waveform, np.float32) if largest == 0.0 else (waveform * (peak / largest)).astype(np.float32)
 
 
 @lru_cache(maxsize=8)
@@ -133,11 +154,12 @@ def log_mel(waveform: np.ndarray, sample_rate: int) -> torch.Tensor:
 
 
 def audio_features(waveform: np.ndarray) -> torch.Tensor:
-    """What the reader reads of a clip at SAMPLE_RATE: :func:`low_cut`, then :func:`log_mel` (1, N_MELS, T).
+    """What the reader reads of a clip at SAMPLE_RATE: :func:`low_cut`, scaled by :func:`at_peak`, then
+    :func:`log_mel` (1, N_MELS, T).
 
-    Training features skip the cut (:mod:`vafn_media.dataset`): the cut corrects, at test time, a reader trained
-    without it; an audio path fine-tuned on cut features read a person's voice and SVOX Pico worse (docs/multimedia.md).
+    Training features skip both (:mod:`vafn_media.dataset`): they correct, at test time, a reader trained without
+    them; an audio path fine-tuned on cut features read a person's voice and SVOX Pico worse (docs/multimedia.md).
 
     :param waveform: float32 samples at SAMPLE_RATE.
     """
-    return log_mel(low_cut(waveform, SAMPLE_RATE), SAMPLE_RATE)
+    return log_mel(at_peak(low_cut(waveform, SAMPLE_RATE)), SAMPLE_RATE)
