@@ -55,6 +55,25 @@ def test_train_job_command_saves_where_the_evaluation_looks(tmp_path: Path) -> N
     assert method.method_fields("M")[-2:] == [json.dumps(method.env_kwargs), method.evaluation]
 
 
+def test_a_run_is_estimated_from_the_committed_training_costs(tmp_path: Path) -> None:
+    from zoo.reproduce import UNMEASURED_CPU_S_PER_STEP, estimated_cpu_s, measured_cpu_per_step, train_jobs
+
+    costs = tmp_path / "results" / "adaptation" / "hidden" / "training_costs.csv"
+    costs.parent.mkdir(parents=True)
+    costs.write_text("panel,method,algo,env,seed,timesteps,wall_s,cpu_s,train_env_success\n"
+                     "hidden,maac,maac,E,0,50000,800,700,0\nhidden,maac,maac,E,1,50000,800,740,0\n"
+                     "order,maac,maac,E,0,10000,300,300,0\nhidden,mappo,mappo,E,0,50000,90,80,0\n")
+    per_step = measured_cpu_per_step(tmp_path)
+    assert per_step[("hidden", "maac")] == pytest.approx(720 / 50000) and per_step[("", "maac")] == pytest.approx(740 / 50000)
+    jobs = {job.method.label: job for job in train_jobs(BUDGETS["full"], (HIDDEN_PANEL,), tmp_path)}
+    assert estimated_cpu_s(jobs["maac"], per_step) == pytest.approx(720)  # its own panel's rate, not order's
+    assert estimated_cpu_s(jobs["mappo"], per_step) == pytest.approx(80)
+    assert estimated_cpu_s(jobs["mtsac"], per_step) == pytest.approx(50000 * UNMEASURED_CPU_S_PER_STEP)
+    committed = measured_cpu_per_step()  # the repository's own files: every trained method of Fig. 3 has a rate
+    assert all((panel.name, method.label) in committed for panel in PANELS for method in panel.methods
+               if method.models_from is None and method.train_env != "VAFN/ThreeArmReachGoal-v1")
+
+
 def test_summary_is_written_from_a_results_folder(tmp_path: Path) -> None:
     shutil.copytree(REPO_ROOT / "results" / "adaptation" / "hidden_long", tmp_path / "adaptation" / "hidden_long")
     summary = write_summary(tmp_path).read_text()

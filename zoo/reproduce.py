@@ -141,8 +141,34 @@ def train_jobs(budget: Budget, panels: tuple[Panel, ...], work: Path) -> list[Tr
             for panel in panels for method in panel.methods if method.models_from is None for seed in budget.seeds]
 
 
+#: The committed training costs (``training_costs.csv`` of earlier runs) that estimate a run before it starts.
+COST_FILES: tuple[str, ...] = ("results/training_costs.csv", "results/adaptation/*/training_costs.csv")
+#: CPU seconds per env step of a job no committed run measured (SAC's order of magnitude at [64, 64]).
+UNMEASURED_CPU_S_PER_STEP: float = 0.008
+
+
+def measured_cpu_per_step(root: Path = REPO_ROOT) -> dict[tuple[str, str], float]:
+    """Median CPU seconds per env step of every ``(panel, method)`` and every ``("", algo)`` in the cost files."""
+    samples: dict[tuple[str, str], list[float]] = {}
+    for pattern in COST_FILES:
+        for path in sorted(root.glob(pattern)):
+            with path.open(newline="") as handle:
+                for row in csv.DictReader(handle):
+                    per_step = float(row["cpu_s"]) / max(int(row["timesteps"]), 1)
+                    for key in ((row["panel"], row["method"]), ("", row["algo"])):
+                        samples.setdefault(key, []).append(per_step)
+    return {key: float(np.median(values)) for key, values in samples.items()}
+
+
+def estimated_cpu_s(job: TrainJob, per_step: dict[tuple[str, str], float]) -> float:
+    """CPU seconds a job should take: its method's measured rate, else its algorithm's, else a default."""
+    rate = per_step.get((job.panel.name, job.method.label), per_step.get(("", job.method.algo)))
+    return job.budget.timesteps * (UNMEASURED_CPU_S_PER_STEP if rate is None else rate)
+
+
 def run_training(jobs: list[TrainJob], n_workers: int) -> list[dict[str, Any]]:
-    """Train every job whose model is missing, ``n_workers`` processes at a time; one record per job."""
+    """Train every job whose model is missing, ``n_workers`` processes at a time, the longest first (by the committed
+    costs, which also drive the progress bar and the estimate printed before it starts); one record per job."""
 
     def run(job: TrainJob) -> dict[str, Any]:
         record = {"panel": job.panel.name, "method": job.method.label, "seed": job.seed, "reused": True, "error": ""}
@@ -156,13 +182,23 @@ def run_training(jobs: list[TrainJob], n_workers: int) -> list[dict[str, Any]]:
                 record["error"] = f"exit {result.returncode}, see {job.log_path}"
         return record
 
-    records = []
-    with ThreadPoolExecutor(max_workers=n_workers) as pool:
-        futures = [pool.submit(run, job) for job in jobs]
-        for future in tqdm(as_completed(futures), total=len(futures), desc="training"):
+    per_step = measured_cpu_per_step()
+    cost = {id(job): estimated_cpu_s(job, per_step) for job in jobs}
+    todo = sorted((job for job in jobs if not job.model_path.is_file()), key=lambda job: -cost[id(job)])
+    total = sum(cost[id(job)] for job in todo)
+    if todo:
+        print(f"training {len(todo)} jobs ({len(jobs) - len(todo)} already trained): about {total / 3600:.1f} CPU-h "
+              f"by the committed costs, about {total / 3600 / min(n_workers, len(todo)):.1f} h with {n_workers} "
+              "job(s) at a time on free cores")
+    records = [run(job) for job in jobs if job.model_path.is_file()]
+    with ThreadPoolExecutor(max_workers=n_workers) as pool, \
+            tqdm(total=round(total), desc="training (estimated CPU-s)", unit="s") as progress:
+        futures = {pool.submit(run, job): job for job in todo}
+        for future in as_completed(futures):
             record = future.result()
             if record["error"]:
                 tqdm.write(f"{record['panel']}/{record['method']} seed {record['seed']} FAILED: {record['error']}")
+            progress.update(round(cost[id(futures[future])]))
             records.append(record)
     return records
 
