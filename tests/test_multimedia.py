@@ -681,6 +681,21 @@ def test_the_reading_does_not_depend_on_the_recording_level(generator, sample):
         other = generator.transcribe(audio=(waveform * np.float32(gain), rate))
         assert other.arms == arms and abs(other.confidence - reference.confidence) < 1e-3, gain
 
+
+def test_a_clip_that_starts_or_ends_in_a_sound_is_read_with_silence_added_there(generator, sample):
+    from vafn_media.audio import EDGE_PAD_SECONDS, load_audio, with_quiet_edges
+    from vafn_media.speech import trim_silence
+
+    arms, waveform, rate, _ = sample
+    pad = np.zeros(rate // 4, np.float32)
+    quiet = load_audio((np.concatenate([pad, waveform, pad]), rate))
+    assert quiet.sounding_edges == (False, False) and with_quiet_edges(quiet) is quiet.waveform
+    trimmed = load_audio((trim_silence(waveform), rate))
+    assert trimmed.sounding_edges[0]  # a trimmed clip starts in its first word
+    padded = with_quiet_edges(trimmed)
+    added = int(round(EDGE_PAD_SECONDS * trimmed.sample_rate))
+    assert len(padded) == len(trimmed.waveform) + added * sum(trimmed.sounding_edges) and not padded[:added].any()
+
 needs_recordings = pytest.mark.skipif(
     not all((Path("/usr/share/asterisk/sounds/en_US_f_Allison") / name).is_file()
             for name in ("digits/1.wav", "digits/2.wav", "digits/3.wav", "vm-and.wav")),
@@ -708,13 +723,16 @@ def test_recorded_voice_says_only_its_words_and_is_an_evaluation_engine():
 
 
 @needs_recordings
-def test_reader_reads_a_person_in_noise_and_reverb_only_with_its_low_cut_and_level(monkeypatch):
-    """A person's recorded words, clean, in a reverberant room and in 10 dB noise (fixed seeds): read right with the
-    reader's two test-time corrections, and not without them (the cut matters in noise, the level in reverb)."""
+def test_reader_reads_a_person_in_noise_reverb_and_trimmed_only_with_its_corrections(monkeypatch):
+    """A person's recorded words, clean, in a reverberant room, in 10 dB noise (fixed seeds) and trimmed at the words:
+    read right with the reader's test-time corrections, and not without each (the cut matters in noise, the level in
+    reverb, the added silence on trimmed clips)."""
     import vafn_media.features as features
+    import vafn_media.generator as generator_module
     from vafn_media import InstructionGenerator
     from vafn_media.augment import apply_condition
     from vafn_media.engines import speak_with
+    from vafn_media.speech import trim_silence
 
     generator = InstructionGenerator.load()
     said = {}
@@ -729,6 +747,11 @@ def test_reader_reads_a_person_in_noise_and_reverb_only_with_its_low_cut_and_lev
         return sum(generator.transcribe(audio=clip).arms != arms for (arms, c), clip in said.items() if c == condition)
 
     assert misread("clean") == misread("reverb") == misread("10 dB noise") == 0
+    trimmed = {arms: (trim_silence(speak_with("recorded", arms, "allison")[0]), 8000) for arms, _ in said}
+    assert all(generator.transcribe(audio=clip).arms == arms for arms, clip in trimmed.items())
+    with monkeypatch.context() as patch:  # ... without the silence it adds where a clip is trimmed at its words
+        patch.setattr(generator_module, "with_quiet_edges", lambda clip: clip.waveform)
+        assert any(generator.transcribe(audio=clip).arms != arms for arms, clip in trimmed.items())
     with monkeypatch.context() as patch:
         patch.setattr(features.low_cut, "__defaults__", (0.0,))  # the reader without its low cut
         assert misread("10 dB noise") > 0

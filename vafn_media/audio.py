@@ -40,6 +40,9 @@ NOISE_MAX_RANGE_DB: float = 6.0
 EDGE_SECONDS: float = 0.03
 EDGE_FRACTION: float = 0.55
 MIN_DYNAMIC_RANGE_DB: float = 10.0
+#: Silence the reader adds where a clip starts or ends in a sound by the same test (trimmed at its words, as a
+#: voice-activity detector leaves a clip): without it the reader lost the first or last word (docs/multimedia.md).
+EDGE_PAD_SECONDS: float = 0.25
 
 AudioSource = str | os.PathLike | np.ndarray | tuple[np.ndarray, int]
 _INT_SCALE = {np.dtype(np.int16): 32768.0, np.dtype(np.int32): 2147483648.0, np.dtype(np.uint8): 128.0}
@@ -53,6 +56,8 @@ class Audio:
     sample_rate: int
     warnings: list[str] = field(default_factory=list)
     source_rate: int = SAMPLE_RATE
+    #: Whether the clip starts / ends in the middle of a sound (see :data:`EDGE_FRACTION`).
+    sounding_edges: tuple[bool, bool] = (False, False)
 
     @property
     def seconds(self) -> float:
@@ -147,6 +152,14 @@ def speech_problems(waveform: np.ndarray) -> list[str]:
 
     :param waveform: float32 samples at SAMPLE_RATE.
     """
+    return inspect_speech(waveform)[0]
+
+
+def inspect_speech(waveform: np.ndarray) -> tuple[list[str], tuple[bool, bool]]:
+    """:func:`speech_problems` and whether the clip starts / ends in the middle of a sound; ValueError when it is noise.
+
+    :param waveform: float32 samples at SAMPLE_RATE.
+    """
     levels, flatness = _frame_stats(waveform)
     floor, loud = (float(value) for value in np.percentile(levels, (10, 95)))
     dynamic = loud - floor
@@ -154,15 +167,25 @@ def speech_problems(waveform: np.ndarray) -> list[str]:
     if tonal > NOISE_MIN_FLATNESS and dynamic < NOISE_MAX_RANGE_DB:
         raise ValueError(f"audio is noise, not speech: its level varies by only {dynamic:.1f} dB and even its most "
                          f"tonal frames are flat (spectral flatness {tonal:.2f})")
-    problems = []
     if dynamic < MIN_DYNAMIC_RANGE_DB:
-        return problems
+        return [], (False, False)
     edge = max(1, int(round(EDGE_SECONDS / _FRAME_SECONDS)))
-    level = float(10 * np.log10(np.mean(10 ** (levels[-edge:] / 10))))
-    if level - floor > EDGE_FRACTION * dynamic:
-        problems.append(f"audio ends in the middle of a sound ({level - floor:.0f} dB above its quietest part): "
+    start, end = (float(10 * np.log10(np.mean(10 ** (part / 10)))) - floor for part in (levels[:edge], levels[-edge:]))
+    problems = []
+    if end > EDGE_FRACTION * dynamic:
+        problems.append(f"audio ends in the middle of a sound ({end:.0f} dB above its quietest part): "
                         f"it may be cut off mid-word")
-    return problems
+    return problems, (start > EDGE_FRACTION * dynamic, end > EDGE_FRACTION * dynamic)
+
+
+def with_quiet_edges(clip: Audio) -> np.ndarray:
+    """The clip's samples with :data:`EDGE_PAD_SECONDS` of silence added at an end where it is in a sound.
+
+    :param clip: a validated clip (from :func:`load_audio`).
+    """
+    pad = np.zeros(int(round(EDGE_PAD_SECONDS * clip.sample_rate)), np.float32)
+    before, after = (pad if sounding else pad[:0] for sounding in clip.sounding_edges)
+    return np.concatenate([before, clip.waveform, after]) if len(before) + len(after) else clip.waveform
 
 
 def _to_mono_float(samples: np.ndarray) -> np.ndarray:
@@ -236,5 +259,5 @@ def load_audio(source: AudioSource, sample_rate: int | None = None) -> Audio:
     if peak > 1.0 + 1e-3:
         warnings.append(f"audio exceeds full scale (peak {peak:.2f}); it was not normalised")
     waveform = resample(waveform, rate, SAMPLE_RATE)
-    warnings += speech_problems(waveform)
-    return Audio(np.ascontiguousarray(waveform), SAMPLE_RATE, warnings, rate)
+    problems, edges = inspect_speech(waveform)
+    return Audio(np.ascontiguousarray(waveform), SAMPLE_RATE, warnings + problems, rate, edges)

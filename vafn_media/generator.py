@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from vafn_gym.instructions import Instruction
-from vafn_media.audio import AudioSource, load_audio
+from vafn_media.audio import AudioSource, load_audio, with_quiet_edges
 from vafn_media.constants import LOW_CONFIDENCE, MAX_INSTRUCTION_LENGTH, NUM_ARMS, SAMPLE_RATE
 from vafn_media.images import ImageSource, canonical_strip
 
@@ -172,13 +172,14 @@ class InstructionGenerator:
             return greedy_decode(phi, self.model.decode(phi))
 
     def read_audio(self, audio: AudioSource, sample_rate: int | None = None):
-        """Greedy reading of validated audio and the clip's quality warnings; ValueError when it is unusable.
+        """Greedy reading of validated audio (with silence added at an end that is in a sound) and the clip's quality
+        warnings; ValueError when it is unusable.
 
         :param audio: as :meth:`transcribe`'s ``audio``.
         :param sample_rate: sample rate of a bare waveform.
         """
         clip = load_audio(audio, sample_rate)
-        return self.read(self.encode_audio(clip.waveform, clip.sample_rate)), clip.warnings
+        return self.read(self.encode_audio(with_quiet_edges(clip), clip.sample_rate)), clip.warnings
 
     def read_image(self, image: ImageSource):
         """Greedy reading of an image of digits in a row; ValueError when it is unusable.
