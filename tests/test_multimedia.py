@@ -723,21 +723,20 @@ def test_recorded_voice_says_only_its_words_and_is_an_evaluation_engine():
 
 
 @needs_recordings
-def test_reader_reads_a_person_in_noise_reverb_and_trimmed_only_with_its_corrections(monkeypatch):
+def test_reader_reads_a_person_in_noise_reverb_and_trimmed_only_with_its_corrections(generator, monkeypatch):
     """A person's recorded words, clean, in a reverberant room, in 10 dB noise (fixed seeds) and trimmed at the words:
     read right with the reader's test-time corrections, and not without each (the cut matters in noise, the level in
     reverb, the added silence on trimmed clips)."""
     import vafn_media.features as features
     import vafn_media.generator as generator_module
-    from vafn_media import InstructionGenerator
     from vafn_media.augment import apply_condition
     from vafn_media.engines import speak_with
     from vafn_media.speech import trim_silence
 
-    generator = InstructionGenerator.load()
-    said = {}
+    said, trimmed = {}, {}
     for arms in ((3, 2, 1, 3, 2), (1, 2, 2, 3), (2, 3, 1), (3, 3, 2, 1, 1, 2), (2, 1, 3, 3), (1, 3, 2)):
         waveform, rate = speak_with("recorded", arms, "allison")
+        trimmed[arms] = (trim_silence(waveform), rate)
         pad = np.zeros(rate // 4, np.float32)
         for condition in ("clean", "reverb", "10 dB noise"):
             said[arms, condition] = apply_condition(np.concatenate([pad, waveform, pad]), rate, condition,
@@ -747,7 +746,6 @@ def test_reader_reads_a_person_in_noise_reverb_and_trimmed_only_with_its_correct
         return sum(generator.transcribe(audio=clip).arms != arms for (arms, c), clip in said.items() if c == condition)
 
     assert misread("clean") == misread("reverb") == misread("10 dB noise") == 0
-    trimmed = {arms: (trim_silence(speak_with("recorded", arms, "allison")[0]), 8000) for arms, _ in said}
     assert all(generator.transcribe(audio=clip).arms == arms for arms, clip in trimmed.items())
     with monkeypatch.context() as patch:  # ... without the silence it adds where a clip is trimmed at its words
         patch.setattr(generator_module, "with_quiet_edges", lambda clip: clip.waveform)

@@ -171,11 +171,10 @@ def inspect_speech(waveform: np.ndarray) -> tuple[list[str], tuple[bool, bool]]:
         return [], (False, False)
     edge = max(1, int(round(EDGE_SECONDS / _FRAME_SECONDS)))
     start, end = (float(10 * np.log10(np.mean(10 ** (part / 10)))) - floor for part in (levels[:edge], levels[-edge:]))
-    problems = []
-    if end > EDGE_FRACTION * dynamic:
-        problems.append(f"audio ends in the middle of a sound ({end:.0f} dB above its quietest part): "
-                        f"it may be cut off mid-word")
-    return problems, (start > EDGE_FRACTION * dynamic, end > EDGE_FRACTION * dynamic)
+    sounding = (start > EDGE_FRACTION * dynamic, end > EDGE_FRACTION * dynamic)
+    problems = [f"audio ends in the middle of a sound ({end:.0f} dB above its quietest part): it may be cut off "
+                "mid-word"] if sounding[1] else []
+    return problems, sounding
 
 
 def with_quiet_edges(clip: Audio) -> np.ndarray:
@@ -183,9 +182,10 @@ def with_quiet_edges(clip: Audio) -> np.ndarray:
 
     :param clip: a validated clip (from :func:`load_audio`).
     """
-    pad = np.zeros(int(round(EDGE_PAD_SECONDS * clip.sample_rate)), np.float32)
-    before, after = (pad if sounding else pad[:0] for sounding in clip.sounding_edges)
-    return np.concatenate([before, clip.waveform, after]) if len(before) + len(after) else clip.waveform
+    if not any(clip.sounding_edges):
+        return clip.waveform
+    pad = int(round(EDGE_PAD_SECONDS * clip.sample_rate))
+    return np.pad(clip.waveform, tuple(pad if sounding else 0 for sounding in clip.sounding_edges))
 
 
 def _to_mono_float(samples: np.ndarray) -> np.ndarray:
