@@ -183,9 +183,9 @@ def run_training(jobs: list[TrainJob], n_workers: int) -> list[dict[str, Any]]:
         return record
 
     per_step = measured_cpu_per_step()
-    cost = {id(job): estimated_cpu_s(job, per_step) for job in jobs}
-    todo = sorted((job for job in jobs if not job.model_path.is_file()), key=lambda job: -cost[id(job)])
-    total = sum(cost[id(job)] for job in todo)
+    todo = sorted(((estimated_cpu_s(job, per_step), job) for job in jobs if not job.model_path.is_file()),
+                  key=lambda pair: -pair[0])
+    total = sum(cost for cost, _ in todo)
     if todo:
         print(f"training {len(todo)} jobs ({len(jobs) - len(todo)} already trained): about {total / 3600:.1f} CPU-h "
               f"by the committed costs, about {total / 3600 / min(n_workers, len(todo)):.1f} h with {n_workers} "
@@ -193,12 +193,12 @@ def run_training(jobs: list[TrainJob], n_workers: int) -> list[dict[str, Any]]:
     records = [run(job) for job in jobs if job.model_path.is_file()]
     with ThreadPoolExecutor(max_workers=n_workers) as pool, \
             tqdm(total=round(total), desc="training (estimated CPU-s)", unit="s") as progress:
-        futures = {pool.submit(run, job): job for job in todo}
+        futures = {pool.submit(run, job): cost for cost, job in todo}
         for future in as_completed(futures):
             record = future.result()
             if record["error"]:
                 tqdm.write(f"{record['panel']}/{record['method']} seed {record['seed']} FAILED: {record['error']}")
-            progress.update(round(cost[id(futures[future])]))
+            progress.update(round(futures[future]))
             records.append(record)
     return records
 
