@@ -327,6 +327,34 @@ def test_maac_critic_gives_one_q_per_agent_and_reads_only_own_action_directly(n_
 
 
 @pytest.mark.parametrize("n_agents", N_AGENTS)
+def test_maac_attention_q_equals_per_agent_per_head_loop(n_agents):
+    """The batched critic computes MAAC's attention one agent and one head at a time (``utils/critics.py``)."""
+    q_net = untrained_policies(n_agents)["MAAC"].critic.q_networks[0]
+    obs, actions = th.rand(7, n_agents * OBS_PER_AGENT), th.rand(7, n_agents * ACTION_PER_AGENT)
+    q, logits = q_net(obs, actions)
+    heads, width = q_net.attend_heads, q_net.head_dim
+    with th.no_grad():
+        local_obs = obs.view(7, n_agents, OBS_PER_AGENT)
+        sa = q_net.sa_encoder(th.cat([local_obs, actions.view(7, n_agents, ACTION_PER_AGENT)], dim=-1))
+        s = q_net.state_encoder(local_obs)
+        for i in range(n_agents):
+            attended = []
+            for h in range(heads):
+                rows = slice(h * width, (h + 1) * width)
+                query = s[:, i] @ q_net.selector_extractor.weight[rows].T
+                others = [j for j in range(n_agents) if j != i]
+                keys = th.stack([sa[:, j] @ q_net.key_extractor.weight[rows].T for j in others], dim=1)
+                values = th.stack([q_net.value_extractor(sa[:, j])[:, rows] for j in others], dim=1)
+                head_logits = (keys @ query.unsqueeze(-1)).squeeze(-1)
+                th.testing.assert_close(logits[:, h, i], head_logits)
+                weights = th.softmax(head_logits / width**0.5, dim=1)
+                attended.append((weights.unsqueeze(-1) * values).sum(1))
+            head_in = th.cat([sa[:, i], *attended], dim=-1)
+            hidden = th.nn.functional.leaky_relu(head_in @ q_net.head[0].weight[i] + q_net.head[0].bias[i])
+            th.testing.assert_close(q[:, i], (hidden @ q_net.head[2].weight[i] + q_net.head[2].bias[i]).squeeze(-1))
+
+
+@pytest.mark.parametrize("n_agents", N_AGENTS)
 def test_maac_own_action_q_equals_per_agent_substitution(n_agents):
     """The one-pass actor-loss Q_i (others detached) has the values and action gradients of N substituted copies."""
     critic = untrained_policies(n_agents)["MAAC"].critic

@@ -264,7 +264,7 @@ class AgentwiseLinear(nn.Module):
     """A linear layer with separate weights per agent: ``(B, N, d_in)`` to ``(B, N, d_out)``.
 
     Equivalent to ``N`` independent ``nn.Linear`` modules (MAAC's per-agent ``nn.ModuleList`` encoders and critic heads)
-    computed in one batched einsum, initialised like ``nn.Linear``.
+    computed in one batched matrix product, initialised like ``nn.Linear``.
 
     :param n_agents: number of agents ``N``.
     :param in_features: input width per agent.
@@ -279,7 +279,7 @@ class AgentwiseLinear(nn.Module):
 
     def forward(self, x: th.Tensor) -> th.Tensor:
         """Apply agent ``i``'s weights to ``x[:, i]``."""
-        return th.einsum("bni,nio->bno", x, self.weight) + self.bias
+        return th.baddbmm(self.bias.unsqueeze(1), x.transpose(0, 1), self.weight).transpose(0, 1)
 
 
 def _require_flat_features(features_extractor: nn.Module, use_sde: bool = False) -> None:

@@ -66,8 +66,9 @@ class AttentionQ(nn.Module):
             nn.LeakyReLU(),
             AgentwiseLinear(n_agents, hidden_dim, 1),
         )
-        others = ~th.eye(n_agents, dtype=th.bool)
-        self.register_buffer("others_mask", others, persistent=False)
+        # Row i lists the agents j != i in increasing order (the order of MAAC's per-agent attention).
+        others_index = th.arange(n_agents).expand(n_agents, n_agents)[~th.eye(n_agents, dtype=th.bool)]
+        self.register_buffer("others_index", others_index, persistent=False)
 
     def _encode(self, local_obs: th.Tensor, actions: th.Tensor) -> th.Tensor:
         return self.sa_encoder(th.cat([local_obs, split_agents(actions, self.layout.action_per_agent)], dim=-1))
@@ -99,14 +100,16 @@ class AttentionQ(nn.Module):
         keys = self.key_extractor(sa_others).view(shape)
         values = self.value_extractor(sa_others).view(shape)
         queries = self.selector_extractor(s).view(shape)
-        logits = th.einsum("bihd,bjhd->bhij", queries, keys)  # (B, heads, i, j): agent i attends to agent j
-        logits = logits[:, :, self.others_mask].view(batch, self.attend_heads, n_agents, n_agents - 1)
-        weights = th.softmax(logits / self.head_dim**0.5, dim=-1)
-        other_values = values.unsqueeze(1).expand(batch, n_agents, n_agents, *shape[2:])[:, self.others_mask]
-        other_values = other_values.view(batch, n_agents, n_agents - 1, self.attend_heads, self.head_dim)
-        attended = th.einsum("bhij,bijhd->bihd", weights, other_values).reshape(batch, n_agents, -1)
+        # Agent i's keys and values are those of the agents j != i, gathered once; products and sums replace einsum
+        # because with a few agents the per-head matrices are far too small for batched matmul to pay off.
+        others = (batch, n_agents, n_agents - 1, self.attend_heads, self.head_dim)
+        other_keys = keys.index_select(1, self.others_index).view(others)
+        other_values = values.index_select(1, self.others_index).view(others)
+        logits = (queries.unsqueeze(2) * other_keys).sum(-1)  # (B, i, j != i, heads)
+        weights = th.softmax(logits / self.head_dim**0.5, dim=2)
+        attended = (weights.unsqueeze(-1) * other_values).sum(2).reshape(batch, n_agents, -1)
         q = self.head(th.cat([sa, attended], dim=-1)).squeeze(-1)
-        return q, logits
+        return q, logits.permute(0, 3, 1, 2)
 
 
 class AttentionCritic(BaseModel):
