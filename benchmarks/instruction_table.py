@@ -64,7 +64,7 @@ def parse_args() -> argparse.Namespace:
     )
     parser.add_argument("--robust-items", type=int, default=100, help="items per engine of the robustness section")
     parser.add_argument("--robust-only", action="store_true", help="skip Table 1; run only the robustness section")
-    parser.add_argument("--camera-items", type=int, default=100,
+    parser.add_argument("--camera-items", type=int, default=300,
                         help="cards per glyph set of the camera section (0: skip)")
     parser.add_argument("--camera-only", action="store_true",
                         help="skip Table 1 and the speech robustness; run only the camera section")
