@@ -9,6 +9,9 @@ spoken instructions (lengths 1-10, random phrasings, a seed of its own) under pr
   input: e.g. *two* as [tU], [tu], [tVu]; *three* as [tri:], [fri:], [TrI]), one variant per word;
 - flite (never trained on) as it is, then warped at test time: vocal-tract length (the training VTLP, factors 0.75-1.25)
   and playback speed (0.85-1.15);
+- every engine made faster with its pitch kept, to 0.7x its duration (the robustness table's "fast" for engines
+  without a rate control) by two methods: WSOLA (``sox tempo``; skipped without sox) and a phase vocoder (librosa,
+  the robustness table's method): does the reader fail on the rate, or on how the clip was compressed?
 - both engines saying only the number words, as one sentence and then **one word at a time**, each word synthesised
   alone, trimmed and joined with 0, 100 or 250 ms of silence: where the words no longer touch, what is left of the
   errors lies in the words themselves, not in how an engine runs them together.
@@ -24,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import time
 from collections.abc import Callable
 from functools import partial
@@ -39,6 +43,8 @@ ITEM_SEED = 777
 LPC_ORDER, LPC_FRAME_S, F0_RANGE = 18, 0.02, (70.0, 260.0)
 #: Silence between number words said one at a time (s).
 WORD_GAPS_S: tuple[float, ...] = (0.0, 0.1, 0.25)
+#: Duration factor of the pitch-kept tempo probes (the robustness table's "fast" for engines without a rate control).
+FAST_DURATION = 0.7
 #: espeak-ng phoneme mnemonics of each number word: the default (first) and accent-like variants.
 PRONUNCIATIONS: dict[int, tuple[str, ...]] = {
     1: ("w'Vn", "w'0n", "w'@n", "w'an"),
@@ -86,6 +92,27 @@ def espeak_with_pronunciation(arms: tuple[int, ...], voice: str, variant: int) -
 
     text = ", ".join(f"[[{PRONUNCIATIONS[arm][variant]}]]" for arm in arms)
     return EspeakSynthesizer.shared().synthesize(text, Voice(*voice.split("+")), phonemes=True)
+
+
+def sox_tempo(waveform: np.ndarray, rate: int, duration: float) -> np.ndarray:
+    """``waveform`` compressed to ``duration`` x its length, pitch kept, by sox's WSOLA ``tempo`` effect."""
+    import subprocess
+    import tempfile
+
+    import soundfile as sf
+
+    with tempfile.TemporaryDirectory() as folder:
+        source, target = Path(folder) / "in.wav", Path(folder) / "out.wav"
+        sf.write(source, waveform, rate)
+        subprocess.run(["sox", str(source), str(target), "tempo", "-s", f"{1.0 / duration:.6f}"], check=True)
+        return sf.read(target, dtype="float32")[0]
+
+
+def phase_vocoder(waveform: np.ndarray, rate: int, duration: float) -> np.ndarray:
+    """``waveform`` compressed to ``duration`` x its length, pitch kept, by librosa's phase vocoder."""
+    import librosa
+
+    return librosa.effects.time_stretch(np.asarray(waveform, np.float32), rate=1.0 / duration).astype(np.float32)
 
 
 def one_word_at_a_time(arms: tuple[int, ...], say: Callable[[str], tuple[np.ndarray, int]],
@@ -148,6 +175,15 @@ def main(argv: list[str] | None = None) -> list[tuple[str, str, float]]:
         return run
 
     rows: list[tuple[str, str, float]] = []
+    tempo_methods = {"phase vocoder (librosa)": phase_vocoder}
+    if shutil.which("sox"):
+        tempo_methods = {"WSOLA (sox tempo)": sox_tempo, **tempo_methods}
+
+    def tempo_rows(engine: str, clips: list[tuple[np.ndarray, int]], labels: list[tuple[int, ...]]) -> None:
+        """The pitch-kept tempo probes of one engine's clips."""
+        for method, compress in tempo_methods.items():
+            faster = [(compress(waveform, rate, FAST_DURATION), rate) for waveform, rate in clips]
+            rows.append((engine, f"{FAST_DURATION}x duration, pitch kept: {method}", accuracy(read, faster, labels)))
 
     def word_rows(engine: str, spoken_items: list, synthesise: Callable[[str, str], tuple[np.ndarray, int]]) -> None:
         """The number-words-only rows of one engine, on its non-empty instructions."""
@@ -178,6 +214,7 @@ def main(argv: list[str] | None = None) -> list[tuple[str, str, float]]:
                       SAMPLE_RATE) for i, (w, r) in enumerate(clips)]
     rows.append(("espeak held-out voices", "voice source replaced (LPC resynthesis, random f0)",
                  accuracy(read, resynthesised, labels)))
+    tempo_rows("espeak held-out voices", clips, labels)
     for variant in range(len(PRONUNCIATIONS[1])):  # 0: the default words, said the same way (comma-separated)
         said = ", ".join(f"{word} [{PRONUNCIATIONS[arm][variant]}]" for arm, word in ((1, "one"), (2, "two"),
                                                                                        (3, "three")))
@@ -197,6 +234,7 @@ def main(argv: list[str] | None = None) -> list[tuple[str, str, float]]:
         for factor in (0.85, 0.9, 1.1, 1.15):
             sped = [(speed(resample(w, r, SAMPLE_RATE), factor), SAMPLE_RATE) for w, r in clips]
             rows.append((engine, f"played at {factor}x speed (tempo and pitch)", accuracy(read, sped, labels)))
+        tempo_rows(engine, clips, labels)
         word_rows(engine, items, partial(speak_text, engine))
     lines = [f"Speech reader invariance: packaged checkpoint, audio alone, {args.items} instructions (lengths 1-10, "
              f"random phrasings, item seed {ITEM_SEED}) per engine, exact sequence.", "",

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 
@@ -37,8 +39,10 @@ def test_probe_table_is_written(load_benchmark, tmp_path):
     rows = module.main(["--items", "2", "--out", str(tmp_path / "table.md")])
     espeak = [row for row in rows if row[0].startswith("espeak")]
     word_rows = 1 + len(module.WORD_GAPS_S)  # one sentence, then one word at a time per gap
-    assert len(espeak) == 2 + len(module.PRONUNCIATIONS[1]) + word_rows and all(0 <= row[2] <= 100 for row in rows)
-    assert len(rows) == len(espeak) + (11 + word_rows) * len(available_engines())
+    tempo_rows = 1 + (shutil.which("sox") is not None)  # phase vocoder, and WSOLA where sox is installed
+    assert len(espeak) == 2 + tempo_rows + len(module.PRONUNCIATIONS[1]) + word_rows
+    assert all(0 <= row[2] <= 100 for row in rows)
+    assert len(rows) == len(espeak) + (11 + tempo_rows + word_rows) * len(available_engines())
     assert "| espeak held-out voices | as synthesised |" in (tmp_path / "table.md").read_text()
 
 
@@ -60,3 +64,17 @@ def test_words_said_one_at_a_time_are_joined_by_the_gap_and_read(load_benchmark)
     assert np.array_equal(waveform[:len(trimmed[0])], trimmed[0])
     pad = np.zeros(rate // 4, np.float32)
     assert InstructionGenerator.load().transcribe(audio=(np.concatenate([pad, waveform, pad]), rate)).arms == (2, 3, 1)
+
+
+@pytest.mark.parametrize("method", ["phase_vocoder", "sox_tempo"])
+def test_tempo_probes_shorten_the_clip_and_keep_its_pitch(load_benchmark, method):
+    if method == "sox_tempo" and shutil.which("sox") is None:
+        pytest.skip("sox is not installed")
+    module = load_benchmark("speech_invariance")
+    rate = 16_000
+    t = np.arange(rate) / rate
+    tone = (0.3 * np.sin(2 * np.pi * 440.0 * t)).astype(np.float32)
+    faster = getattr(module, method)(tone, rate, 0.7)
+    assert len(faster) == pytest.approx(0.7 * len(tone), rel=0.02)
+    spectrum = np.abs(np.fft.rfft(faster * np.hanning(len(faster))))
+    assert np.fft.rfftfreq(len(faster), 1 / rate)[np.argmax(spectrum)] == pytest.approx(440.0, abs=5.0)
