@@ -112,11 +112,14 @@ def recorded_speak(text: str, stretch: float = 1.0) -> tuple[np.ndarray, int]:
     first, last = recordings[0][0], recordings[-1][0]
     spoken = splice_words([w for w, _ in recordings], [RECORDED_PAUSES_S[mark] for _, mark in words[:-1]], rate)
     waveform = np.concatenate([first[:sound_span(first).start], spoken, last[sound_span(last).stop:]])
-    if stretch != 1.0:
-        import librosa
+    return (phase_vocoder_stretch(waveform, stretch) if stretch != 1.0 else waveform), rate
 
-        waveform = librosa.effects.time_stretch(waveform, rate=1.0 / stretch).astype(np.float32)
-    return waveform, rate
+
+def phase_vocoder_stretch(waveform: np.ndarray, stretch: float) -> np.ndarray:
+    """``waveform`` at ``stretch`` x its duration with its pitch kept, by librosa's phase vocoder (float32)."""
+    import librosa
+
+    return librosa.effects.time_stretch(np.asarray(waveform, np.float32), rate=1.0 / stretch).astype(np.float32)
 
 
 def recorded_templates() -> tuple[int, ...]:
