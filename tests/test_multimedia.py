@@ -199,6 +199,25 @@ def test_splice_share_changes_only_how_items_are_said():
     assert cache_key(0, "train", 10) != cache_key(0, "train", 10, splice=0.5)
 
 
+def test_random_tempo_changes_the_rate_not_the_pitch_and_draws_nothing_when_off():
+    from vafn_media.augment import TEMPO_RATE_RANGE, random_tempo
+    from vafn_media.constants import SAMPLE_RATE
+    from vafn_media.dataset import cache_key
+
+    tone = (0.3 * np.sin(2 * np.pi * 440.0 * np.arange(SAMPLE_RATE) / SAMPLE_RATE)).astype(np.float32)
+    rng = np.random.default_rng(0)
+    assert random_tempo(tone, rng, 0.0) is tone and rng.random() == np.random.default_rng(0).random()
+    rng = np.random.default_rng(1)
+    changed = [random_tempo(tone, rng, 1.0) for _ in range(20)]
+    rates = [len(tone) / len(clip) for clip in changed]
+    assert all(TEMPO_RATE_RANGE[0] - 0.02 <= rate <= TEMPO_RATE_RANGE[1] + 0.02 for rate in rates)
+    assert max(rates) - min(rates) > 0.3
+    for clip in changed:
+        spectrum = np.abs(np.fft.rfft(clip * np.hanning(len(clip))))
+        assert np.fft.rfftfreq(len(clip), 1 / SAMPLE_RATE)[np.argmax(spectrum)] == pytest.approx(440.0, abs=5.0)
+    assert cache_key(0, "train", 10) != cache_key(0, "train", 10, tempo=0.3)
+
+
 @needs_espeak
 def test_words_said_one_at_a_time_are_still_read():
     from vafn_media import InstructionGenerator

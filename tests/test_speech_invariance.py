@@ -70,7 +70,7 @@ def test_words_said_one_at_a_time_are_joined_by_the_gap_and_read(load_benchmark)
 def test_tempo_probes_shorten_the_clip_and_keep_its_pitch(load_benchmark, method):
     if method == "sox_tempo" and shutil.which("sox") is None:
         pytest.skip("sox is not installed")
-    from vafn_media.engines import phase_vocoder_stretch
+    from vafn_media.augment import phase_vocoder_stretch
 
     module = load_benchmark("speech_invariance")
     rate = 16_000

@@ -1,4 +1,4 @@
-"""Waveform degradations that model real recordings: speed, rooms, noise, telephone, silences, gain and clipping.
+"""Waveform degradations that model real recordings: speed, tempo, rooms, noise, telephone, silences, gain and clipping.
 
 Used twice: a random chain (:func:`augment`) makes the training copies of each synthesised utterance, and the named,
 seeded evaluation conditions (:data:`CONDITIONS`, :func:`apply_condition`) make the benchmark's degraded rows.
@@ -23,6 +23,8 @@ MAX_SILENCE_SECONDS: float = 1.0
 #: Probabilities of each stage of the random chain.
 P_SPEED, P_SILENCE, P_REVERB, P_PHONE, P_NOISE, P_CLIP = 0.5, 0.5, 0.45, 0.3, 0.75, 0.12
 NOISE_COLOURS: tuple[str, ...] = ("white", "pink", "brown", "babble")
+#: Speaking rates of the pitch-kept tempo change (:func:`random_tempo`); its probability is a training option.
+TEMPO_RATE_RANGE: tuple[float, float] = (0.7, 1.5)
 
 
 def resample(waveform: np.ndarray, rate_in: int, rate_out: int) -> np.ndarray:
@@ -46,6 +48,30 @@ def speed(waveform: np.ndarray, factor: float) -> np.ndarray:
     :param factor: > 1 faster and higher, < 1 slower and lower.
     """
     return resample(waveform, int(round(SAMPLE_RATE * factor)), SAMPLE_RATE)
+
+
+def phase_vocoder_stretch(waveform: np.ndarray, stretch: float) -> np.ndarray:
+    """``waveform`` at ``stretch`` x its duration with its pitch kept, by librosa's phase vocoder (float32).
+
+    :param waveform: float32 samples.
+    :param stretch: duration factor (< 1 is faster).
+    """
+    import librosa
+
+    return librosa.effects.time_stretch(np.asarray(waveform, np.float32), rate=1.0 / stretch).astype(np.float32)
+
+
+def random_tempo(waveform: np.ndarray, rng: np.random.Generator, probability: float) -> np.ndarray:
+    """With ``probability``, the clip said at a random rate in :data:`TEMPO_RATE_RANGE`, its pitch kept (a tempo
+    change, unlike :func:`speed`); otherwise the clip itself, and ``rng`` is not drawn from when ``probability`` is 0.
+
+    :param waveform: samples at SAMPLE_RATE.
+    :param rng: random generator of its own (so that other draws do not depend on ``probability``).
+    :param probability: chance of a tempo change.
+    """
+    if probability <= 0 or rng.random() >= probability:
+        return waveform
+    return phase_vocoder_stretch(waveform, 1.0 / rng.uniform(*TEMPO_RATE_RANGE))
 
 
 def pad_silence(waveform: np.ndarray, before_s: float, after_s: float) -> np.ndarray:

@@ -181,28 +181,29 @@ def generate_raw(seed: int, split: str, count: int, difficulty: str | None = Non
                     [im for p in parts for im in p.images], [s for p in parts for s in p.specs])
 
 
-def _compact_shard(args: tuple[int, str, int, int, str, tuple[tuple[str, float], ...]]) -> str:
+def _compact_shard(args: tuple[int, str, int, int, str, tuple[tuple[str, float], ...], float]) -> str:
     """Render one shard and store training-ready arrays: log-mel features of the clean utterance (resampled to
-    SAMPLE_RATE) and of AUGMENTED_COPIES degraded copies (speed, silences, room, noise, telephone, gain/clipping), and
-    canonical strips of the clean and of a Cutout copy of each image."""
+    SAMPLE_RATE) and of AUGMENTED_COPIES degraded copies (tempo, speed, silences, room, noise, telephone,
+    gain/clipping), and canonical strips of the clean and of a Cutout copy of each image."""
     import torch
 
-    from vafn_media.augment import augment, resample
+    from vafn_media.augment import augment, random_tempo, resample
     from vafn_media.corruptions import cutout
     from vafn_media.features import log_mel
     from vafn_media.images import canonical_strip
 
     torch.set_num_threads(1)
-    seed, split, start, count, path, shares = args
+    seed, split, start, count, path, shares, tempo = args
     raw = _render_range((seed, split, start, count, None, shares))
     audio: list[list[np.ndarray]] = [[] for _ in range(1 + AUGMENTED_COPIES)]
     clean, masked = [], []
     for index, waveform, image in zip(range(start, start + count), raw.waveforms, raw.images):
         rng = np.random.default_rng([seed, SPLIT_CODES[split], index, 1])
+        tempo_rng = np.random.default_rng([seed, SPLIT_CODES[split], index, 2])
         wave = resample(waveform, raw.sample_rate, SAMPLE_RATE)
         if wave.size == 0:
             wave = np.zeros(SAMPLE_RATE // 4, np.float32)
-        copies = [wave] + [augment(wave, rng) for _ in range(AUGMENTED_COPIES)]
+        copies = [wave] + [augment(random_tempo(wave, tempo_rng, tempo), rng) for _ in range(AUGMENTED_COPIES)]
         for store, copy in zip(audio, copies):
             store.append(log_mel(copy, SAMPLE_RATE)[0].numpy().astype(np.float16))
         clean.append(np.rint(canonical_strip(image) * INK_LEVELS).astype(np.uint8))
@@ -261,7 +262,8 @@ class TrainingData:
         return cls(np.concatenate(arms), np.concatenate(lengths), audio[0], audio[1:], clean, masked)
 
 
-def cache_key(seed: int, split: str, count: int, mbrola: float = 0.0, splice: float = 0.0, pico: float = 0.0) -> str:
+def cache_key(seed: int, split: str, count: int, mbrola: float = 0.0, splice: float = 0.0, pico: float = 0.0,
+              tempo: float = 0.0) -> str:
     """Name of a cached dataset, including a hash of the generator's source so stale caches are not reused.
 
     :param seed: dataset seed.
@@ -270,11 +272,12 @@ def cache_key(seed: int, split: str, count: int, mbrola: float = 0.0, splice: fl
     :param mbrola: share of items spoken by MBROLA voices.
     :param splice: share of items said one word at a time.
     :param pico: share of items spoken by Pico voices.
+    :param tempo: chance that a degraded copy's tempo is changed.
     """
     digest = source_digest("dataset.py", "speech.py", "strips.py", "images.py", "corruptions.py", "constants.py",
                            "features.py", "augment.py")
-    shares = "".join(f"-{name}{share:g}" for name, share in (("mbrola", mbrola), ("splice", splice), ("pico", pico))
-                     if share > 0)
+    shares = "".join(f"-{name}{share:g}" for name, share in (("mbrola", mbrola), ("splice", splice), ("pico", pico),
+                                                                     ("tempo", tempo)) if share > 0)
     return f"{split}-seed{seed}-n{count}{shares}-shard{SHARD_SIZE}-{digest}"
 
 
@@ -288,7 +291,8 @@ def source_digest(*names: str) -> str:
 
 
 def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CACHE, workers: int = 2,
-                progress: bool = True, mbrola: float = 0.0, splice: float = 0.0, pico: float = 0.0) -> TrainingData:
+                progress: bool = True, mbrola: float = 0.0, splice: float = 0.0, pico: float = 0.0,
+                tempo: float = 0.0) -> TrainingData:
     """Generate (or reuse) the cached training arrays of a split, one fresh process per shard, with a progress bar.
 
     :param seed: dataset seed.
@@ -300,15 +304,16 @@ def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CAC
     :param mbrola: share of items spoken by MBROLA voices (:func:`item_spec`).
     :param splice: share of items said one word at a time (:func:`item_spec`).
     :param pico: share of items spoken by Pico voices (:func:`item_spec`).
+    :param tempo: chance that a degraded copy's tempo is changed (:func:`vafn_media.augment.random_tempo`).
     """
     from tqdm import tqdm
 
-    directory = Path(cache_dir) / cache_key(seed, split, count, mbrola, splice, pico)
+    directory = Path(cache_dir) / cache_key(seed, split, count, mbrola, splice, pico, tempo)
     directory.mkdir(parents=True, exist_ok=True)
     starts = range(0, count, SHARD_SIZE)
     paths = [str(directory / f"shard{s // SHARD_SIZE:04d}.npz") for s in starts]
     shares = (("mbrola", mbrola), ("splice", splice), ("pico", pico))  # item_spec's keyword arguments (jobs are hashed)
-    jobs = [(seed, split, s, min(SHARD_SIZE, count - s), path, shares) for s, path in zip(starts, paths)]
+    jobs = [(seed, split, s, min(SHARD_SIZE, count - s), path, shares, tempo) for s, path in zip(starts, paths)]
     todo = [job for job, path in zip(jobs, paths) if not os.path.exists(path)]
     if todo:
         with tqdm(total=len(jobs), initial=len(jobs) - len(todo), disable=not progress,

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from vafn_media.augment import phase_vocoder_stretch
+
 #: flite voices that read arbitrary text (``awb_time`` only speaks times of day); ``kal`` synthesises at 8 kHz.
 FLITE_VOICES: tuple[str, ...] = ("slt", "rms", "awb", "kal16", "kal")
 #: MBROLA's voice directory (Debian's ``mbrola-<voice>`` packages).
@@ -113,13 +115,6 @@ def recorded_speak(text: str, stretch: float = 1.0) -> tuple[np.ndarray, int]:
     spoken = splice_words([w for w, _ in recordings], [RECORDED_PAUSES_S[mark] for _, mark in words[:-1]], rate)
     waveform = np.concatenate([first[:sound_span(first).start], spoken, last[sound_span(last).stop:]])
     return (phase_vocoder_stretch(waveform, stretch) if stretch != 1.0 else waveform), rate
-
-
-def phase_vocoder_stretch(waveform: np.ndarray, stretch: float) -> np.ndarray:
-    """``waveform`` at ``stretch`` x its duration with its pitch kept, by librosa's phase vocoder (float32)."""
-    import librosa
-
-    return librosa.effects.time_stretch(np.asarray(waveform, np.float32), rate=1.0 / stretch).astype(np.float32)
 
 
 def recorded_templates() -> tuple[int, ...]:

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from vafn_gym.files import atomic_write
+from vafn_media.augment import TEMPO_RATE_RANGE
 from vafn_media.constants import BLANK, MODALITIES, VTLP_PROBABILITY, VTLP_RANGE
 
 #: Default paths of the packaged checkpoint (weights + JSON metadata).
@@ -179,6 +180,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--splice-probability", type=float, default=0.0,
                         help="share of training utterances said one word at a time and joined with random gaps and "
                              "overlaps (vafn_media.speech.SPLICE_GAP_RANGE), for word boundaries no synthesiser makes")
+    parser.add_argument("--tempo-probability", type=float, default=0.0,
+                        help="chance that a degraded training copy is said at another rate with its pitch kept (a "
+                             f"phase-vocoder tempo change to a rate in {TEMPO_RATE_RANGE}x)")
     parser.add_argument("--train-only", choices=("all", *MODALITIES), default="all",
                         help="'image' or 'audio': update only that modality's encoder and adapter; the other path, "
                              "the shared projection and the decoder stay frozen, so the other modality's readings "
@@ -205,15 +209,16 @@ def main(argv=None) -> dict:
     rng = np.random.default_rng(args.seed)
     started = time.time()
     cache = args.cache_dir or DEFAULT_CACHE
-    for name in ("mbrola_probability", "pico_probability", "splice_probability"):
+    for name in ("mbrola_probability", "pico_probability", "splice_probability", "tempo_probability"):
         if not 0 <= getattr(args, name) <= 1:
             raise SystemExit(f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(args, name)}")
     if args.mbrola_probability + args.pico_probability > 1:
         raise SystemExit("--mbrola-probability + --pico-probability must not exceed 1")
     train = build_cache(args.seed, "train", args.train_items, cache, args.workers, mbrola=args.mbrola_probability,
-                        splice=args.splice_probability, pico=args.pico_probability)
+                        splice=args.splice_probability, pico=args.pico_probability, tempo=args.tempo_probability)
     validation = {split: build_cache(args.seed, split, args.val_items, cache, args.workers,
-                                     mbrola=args.mbrola_probability, pico=args.pico_probability)
+                                     mbrola=args.mbrola_probability, pico=args.pico_probability,
+                                     tempo=args.tempo_probability)
                   for split in ("test", "heldout")}
     camera = None
     if args.camera_probability > 0:
