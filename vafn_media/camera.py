@@ -361,23 +361,6 @@ def camera_cache_key(seed: int, split: str, count: int) -> str:
     return f"camera-{split}-seed{seed}-n{count}-copies{CAMERA_COPIES}-{digest}"
 
 
-def _strip_or_blank(image: np.ndarray, labels: Sequence[int], fallback: np.ndarray | None) -> np.ndarray:
-    """Canonical strip as uint8 ink; an unreadable image of the empty instruction is a blank strip, of a non-empty
-    one the ``fallback`` image's strip."""
-    from vafn_media.constants import IMAGE_HEIGHT, MIN_IMAGE_WIDTH
-    from vafn_media.dataset import INK_LEVELS
-    from vafn_media.images import canonical_strip
-
-    try:
-        strip = canonical_strip(image)
-    except ValueError:
-        if not labels or fallback is None:
-            strip = np.zeros((IMAGE_HEIGHT, MIN_IMAGE_WIDTH), np.float32)
-        else:
-            strip = canonical_strip(fallback)
-    return np.rint(strip * INK_LEVELS).astype(np.uint8)
-
-
 def build_image_cache(arms: np.ndarray, lengths: np.ndarray, seed: int, split: str, cache_dir: Path,
                       progress: bool = True) -> dict[str, list]:
     """Image strips of every item, rendered and canonicalised by the current code, cached in one file.
@@ -398,7 +381,7 @@ def build_image_cache(arms: np.ndarray, lengths: np.ndarray, seed: int, split: s
     from tqdm import tqdm
 
     from vafn_media.corruptions import cutout
-    from vafn_media.dataset import SPLIT_CODES
+    from vafn_media.dataset import SPLIT_CODES, stored_strip
     from vafn_media.strips import render_strip
 
     path = Path(cache_dir) / (camera_cache_key(seed, split, len(lengths)) + ".npz")
@@ -410,12 +393,12 @@ def build_image_cache(arms: np.ndarray, lengths: np.ndarray, seed: int, split: s
             labels = [int(a) for a in arms[i, : int(lengths[i])]]
             rng = np.random.default_rng([seed, SPLIT_CODES[split], i, 2])
             strip = render_strip(labels, rng, heldout=split == "heldout")
-            store["clean"].append(_strip_or_blank(strip, labels, None))
-            store["masked"].append(_strip_or_blank(cutout(strip, rng), labels, strip))
+            store["clean"].append(stored_strip(strip, labels, None))
+            store["masked"].append(stored_strip(cutout(strip, rng), labels, strip))
             for k in range(CAMERA_COPIES):
                 ink = render_card_ink(labels, rng, SOURCES[int(rng.choice(len(SOURCES), p=TRAIN_SOURCE_PROBABILITIES))],
                                       heldout=False)
-                store[f"camera{k}"].append(_strip_or_blank(camera_augment(ink, rng), labels,
+                store[f"camera{k}"].append(stored_strip(camera_augment(ink, rng), labels,
                                                            colour_card(ink, (245, 245, 245), (20, 20, 20))))
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {}

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from vafn_gym.constants import DIFFICULTY_LENGTHS
-from vafn_media.constants import MAX_INSTRUCTION_LENGTH, NUM_ARMS, SAMPLE_RATE
+from vafn_media.constants import IMAGE_HEIGHT, MAX_INSTRUCTION_LENGTH, MIN_IMAGE_WIDTH, NUM_ARMS, SAMPLE_RATE
 
 if TYPE_CHECKING:  # pragma: no cover
     from vafn_media.speech import Voice
@@ -181,6 +181,26 @@ def generate_raw(seed: int, split: str, count: int, difficulty: str | None = Non
                     [im for p in parts for im in p.images], [s for p in parts for s in p.specs])
 
 
+def stored_strip(image: np.ndarray, labels: Sequence[int], fallback: np.ndarray | None) -> np.ndarray:
+    """Canonical strip of a training image as uint8 ink; an image the reader rejects (a Cutout or a photo that looks
+    like noise) is stored as a blank strip when it shows the empty instruction, else as the ``fallback`` image's strip.
+
+    :param image: the image to store.
+    :param labels: its instruction's arm ids.
+    :param fallback: an image of the same instruction the reader accepts (or None).
+    """
+    from vafn_media.images import canonical_strip
+
+    try:
+        strip = canonical_strip(image)
+    except ValueError:
+        if not labels or fallback is None:
+            strip = np.zeros((IMAGE_HEIGHT, MIN_IMAGE_WIDTH), np.float32)
+        else:
+            strip = canonical_strip(fallback)
+    return np.rint(strip * INK_LEVELS).astype(np.uint8)
+
+
 def _compact_shard(args: tuple[int, str, int, int, str, tuple[tuple[str, float], ...], float]) -> str:
     """Render one shard and store training-ready arrays: log-mel features of the clean utterance (resampled to
     SAMPLE_RATE) and of AUGMENTED_COPIES degraded copies (tempo, speed, silences, room, noise, telephone,
@@ -190,24 +210,23 @@ def _compact_shard(args: tuple[int, str, int, int, str, tuple[tuple[str, float],
     from vafn_media.augment import augment, random_tempo, resample
     from vafn_media.corruptions import cutout
     from vafn_media.features import log_mel
-    from vafn_media.images import canonical_strip
 
     torch.set_num_threads(1)
     seed, split, start, count, path, shares, tempo = args
     raw = _render_range((seed, split, start, count, None, shares))
     audio: list[list[np.ndarray]] = [[] for _ in range(1 + AUGMENTED_COPIES)]
     clean, masked = [], []
-    for index, waveform, image in zip(range(start, start + count), raw.waveforms, raw.images):
+    for index, waveform, image, arms in zip(range(start, start + count), raw.waveforms, raw.images, raw.arms):
         rng = np.random.default_rng([seed, SPLIT_CODES[split], index, 1])
-        tempo_rng = np.random.default_rng([seed, SPLIT_CODES[split], index, 2])
+        tempo_rng = np.random.default_rng([seed, SPLIT_CODES[split], index, 3])  # 2: the camera cache's
         wave = resample(waveform, raw.sample_rate, SAMPLE_RATE)
         if wave.size == 0:
             wave = np.zeros(SAMPLE_RATE // 4, np.float32)
         copies = [wave] + [augment(random_tempo(wave, tempo_rng, tempo), rng) for _ in range(AUGMENTED_COPIES)]
         for store, copy in zip(audio, copies):
             store.append(log_mel(copy, SAMPLE_RATE)[0].numpy().astype(np.float16))
-        clean.append(np.rint(canonical_strip(image) * INK_LEVELS).astype(np.uint8))
-        masked.append(np.rint(canonical_strip(cutout(image, rng)) * INK_LEVELS).astype(np.uint8))
+        clean.append(stored_strip(image, arms, None))
+        masked.append(stored_strip(cutout(image, rng), arms, image))
     arrays = {}
     for k, store in enumerate(audio):
         arrays[f"audio{k}"] = np.concatenate(store, axis=1)
