@@ -199,6 +199,22 @@ def test_splice_share_changes_only_how_items_are_said():
     assert cache_key(0, "train", 10) != cache_key(0, "train", 10, splice=0.5)
 
 
+def test_a_training_image_the_reader_rejects_is_stored_as_its_fallback_not_a_crash():
+    from vafn_media.constants import IMAGE_HEIGHT, MIN_IMAGE_WIDTH
+    from vafn_media.dataset import INK_LEVELS, stored_strip
+    from vafn_media.images import canonical_strip
+    from vafn_media.strips import render_strip
+
+    noise = ((np.random.default_rng(1).random((100, 300)) > 0.95) * 255).astype(np.uint8)
+    card = render_strip([2, 3, 1], np.random.default_rng(0))
+    with pytest.raises(ValueError, match="noise"):
+        canonical_strip(noise)
+    expected = np.rint(canonical_strip(card) * INK_LEVELS).astype(np.uint8)
+    assert np.array_equal(stored_strip(card, [2, 3, 1], None), expected)
+    assert np.array_equal(stored_strip(noise, [2, 3, 1], card), expected)
+    assert np.array_equal(stored_strip(noise, [], card), np.zeros((IMAGE_HEIGHT, MIN_IMAGE_WIDTH), np.uint8))
+
+
 def test_random_tempo_changes_the_rate_not_the_pitch_and_draws_nothing_when_off():
     from vafn_media.augment import TEMPO_RATE_RANGE, random_tempo
     from vafn_media.constants import SAMPLE_RATE
