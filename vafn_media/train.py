@@ -180,7 +180,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--splice-probability", type=float, default=0.0,
                         help="share of training utterances said one word at a time and joined with random gaps and "
                              "overlaps (vafn_media.speech.SPLICE_GAP_RANGE), for word boundaries no synthesiser makes")
-    parser.add_argument("--tempo-probability", type=float, default=0.0,
+    parser.add_argument("--tempo-probability", type=float, default=0.3,
                         help="chance that a degraded training copy is said at another rate with its pitch kept (a "
                              f"phase-vocoder tempo change to a rate in {TEMPO_RATE_RANGE}x)")
     parser.add_argument("--train-only", choices=("all", *MODALITIES), default="all",
