@@ -142,11 +142,11 @@ def main(argv: list[str] | None = None) -> list[tuple[str, str, float]]:
     import torch
 
     from vafn_media import InstructionGenerator
-    from vafn_media.augment import resample, speed
+    from vafn_media.augment import phase_vocoder_stretch, resample, speed
     from vafn_media.batching import warp_vocal_tract
     from vafn_media.constants import SAMPLE_RATE
     from vafn_media.decoding import greedy_decode
-    from vafn_media.engines import available_engines, phase_vocoder_stretch, speak_text
+    from vafn_media.engines import available_engines, speak_text
     from vafn_media.evaluation import speech_items
     from vafn_media.features import audio_features
     from vafn_media.speech import ESPEAK_SAMPLE_RATE, NUMBER_WORDS, EspeakSynthesizer, Voice
