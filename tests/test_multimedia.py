@@ -759,9 +759,9 @@ def test_recorded_voice_says_only_its_words_and_is_an_evaluation_engine():
 
 @needs_recordings
 def test_reader_reads_a_person_in_noise_reverb_and_trimmed_only_with_its_corrections(generator, monkeypatch):
-    """A person's recorded words, clean, in a reverberant room, in 10 dB noise (fixed seeds) and trimmed at the words:
-    read right with the reader's test-time corrections, and not without each (the cut matters in noise, the level in
-    reverb, the added silence on trimmed clips)."""
+    """A person's recorded words, clean, in a reverberant room, in 10 dB noise (fixed seeds), time-compressed and
+    trimmed at the words: read right with the reader's test-time corrections, and not without each (the cut matters
+    in time-compressed speech, the level in reverb, the added silence on trimmed clips)."""
     import vafn_media.features as features
     import vafn_media.generator as generator_module
     from vafn_media.augment import apply_condition
@@ -776,17 +776,19 @@ def test_reader_reads_a_person_in_noise_reverb_and_trimmed_only_with_its_correct
         for condition in ("clean", "reverb", "10 dB noise"):
             said[arms, condition] = apply_condition(np.concatenate([pad, waveform, pad]), rate, condition,
                                                     np.random.default_rng(sum(arms)))
+        fast, fast_rate = speak_with("recorded", arms, "allison", stretch=0.7)
+        said[arms, "fast"] = (np.concatenate([pad, fast, pad]), fast_rate)
 
     def misread(condition: str) -> int:
         return sum(generator.transcribe(audio=clip).arms != arms for (arms, c), clip in said.items() if c == condition)
 
-    assert misread("clean") == misread("reverb") == misread("10 dB noise") == 0
+    assert misread("clean") == misread("reverb") == misread("10 dB noise") == misread("fast") == 0
     assert all(generator.transcribe(audio=clip).arms == arms for arms, clip in trimmed.items())
     with monkeypatch.context() as patch:  # ... without the silence it adds where a clip is trimmed at its words
         patch.setattr(generator_module, "with_quiet_edges", lambda clip: clip.waveform)
         assert any(generator.transcribe(audio=clip).arms != arms for arms, clip in trimmed.items())
     with monkeypatch.context() as patch:
         patch.setattr(features.low_cut, "__defaults__", (0.0,))  # the reader without its low cut
-        assert misread("10 dB noise") > 0
+        assert misread("fast") > 0
     monkeypatch.setattr(features, "at_peak", lambda waveform: waveform)  # ... without reading at READ_PEAK
     assert misread("reverb") > 0
