@@ -309,6 +309,28 @@ def test_log_mel_shape_and_frame_rate(rate):
     assert torch.isfinite(features).all()
 
 
+def test_training_handwriting_is_drawn_in_more_shapes_and_held_out_glyphs_are_untouched(monkeypatch):
+    import vafn_media.strips as strips
+
+    def glyphs(heldout: bool, elastic: float) -> list[np.ndarray]:
+        monkeypatch.setattr(strips, "ELASTIC_PROBABILITY", elastic)
+        return [strips._handwritten_glyph(2, np.random.default_rng(i), 32, heldout) for i in range(20)]
+
+    assert all(np.array_equal(a, b) for a, b in zip(glyphs(True, 0.0), glyphs(True, 1.0)))
+    assert not all(np.array_equal(a, b) for a, b in zip(glyphs(False, 0.0), glyphs(False, 1.0)))
+    stroke = np.zeros((128, 128), np.float32)
+    stroke[30:98, 60:68] = 1.0  # a vertical bar
+    for seed in range(10):
+        monkeypatch.setattr(strips, "ELASTIC_PROBABILITY", 0.0)
+        plain = strips._distort_handwriting(stroke, np.random.default_rng(seed), 96)  # the same gamma, not bent
+        monkeypatch.setattr(strips, "ELASTIC_PROBABILITY", 1.0)
+        bent = strips._distort_handwriting(stroke, np.random.default_rng(seed), 96)
+        assert np.array_equal(plain, stroke) and bent.shape == stroke.shape  # gamma keeps a 0/1 stroke as it is
+        assert not np.allclose(bent, plain, atol=0.05) and 0.8 < bent.sum() / plain.sum() < 1.25
+        columns = np.argwhere(bent > 0.5)[:, 1]
+        assert 60 - 12 < columns.min() and columns.max() < 68 + 12  # bent by at most 8 % of the glyph, plus overshoot
+
+
 def test_canonical_strip_normalises_polarity_and_size():
     from vafn_media.images import canonical_strip
     from vafn_media.strips import render_strip
