@@ -399,7 +399,7 @@ def build_image_cache(arms: np.ndarray, lengths: np.ndarray, seed: int, split: s
                 ink = render_card_ink(labels, rng, SOURCES[int(rng.choice(len(SOURCES), p=TRAIN_SOURCE_PROBABILITIES))],
                                       heldout=False)
                 store[f"camera{k}"].append(stored_strip(camera_augment(ink, rng), labels,
-                                                           colour_card(ink, (245, 245, 245), (20, 20, 20))))
+                                                        colour_card(ink, (245, 245, 245), (20, 20, 20))))
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {}
         for name in names:

@@ -183,7 +183,8 @@ def generate_raw(seed: int, split: str, count: int, difficulty: str | None = Non
 
 def stored_strip(image: np.ndarray, labels: Sequence[int], fallback: np.ndarray | None) -> np.ndarray:
     """Canonical strip of a training image as uint8 ink; an image the reader rejects (a Cutout or a photo that looks
-    like noise) is stored as a blank strip when it shows the empty instruction, else as the ``fallback`` image's strip.
+    like noise) is stored as the ``fallback`` image's strip, or as a blank strip when it shows the empty instruction
+    or has no fallback.
 
     :param image: the image to store.
     :param labels: its instruction's arm ids.
@@ -295,8 +296,8 @@ def cache_key(seed: int, split: str, count: int, mbrola: float = 0.0, splice: fl
     """
     digest = source_digest("dataset.py", "speech.py", "strips.py", "images.py", "corruptions.py", "constants.py",
                            "features.py", "augment.py")
-    shares = "".join(f"-{name}{share:g}" for name, share in (("mbrola", mbrola), ("splice", splice), ("pico", pico),
-                                                                     ("tempo", tempo)) if share > 0)
+    options = (("mbrola", mbrola), ("splice", splice), ("pico", pico), ("tempo", tempo))
+    shares = "".join(f"-{name}{share:g}" for name, share in options if share > 0)
     return f"{split}-seed{seed}-n{count}{shares}-shard{SHARD_SIZE}-{digest}"
 
 
