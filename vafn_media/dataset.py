@@ -52,7 +52,7 @@ class ItemSpec:
 
 
 def item_spec(seed: int, split: str, index: int, difficulty: str | None = None, mbrola: float = 0.0,
-              splice: float = 0.0, pico: float = 0.0) -> ItemSpec:
+              splice: float = 0.0, pico: float = 0.0, rhvoice: float = 0.0) -> ItemSpec:
     """The deterministic specification of item ``index`` of ``split``.
 
     :param seed: dataset seed.
@@ -65,14 +65,17 @@ def item_spec(seed: int, split: str, index: int, difficulty: str | None = None, 
         :data:`~vafn_media.speech.SPLICE_GAP_RANGE` (a stream of its own too).
     :param pico: share of items spoken by a Pico voice (held-out ones in "heldout"), drawn on MBROLA's stream after
         its share, so ``mbrola + pico`` must not exceed 1 and pico = 0 leaves every item as it was.
+    :param rhvoice: share of items spoken by an RHVoice voice (held-out ones in "heldout"), drawn on the same stream
+        after Pico's share; the three shares sum to at most 1 and rhvoice = 0 leaves every item as it was.
     """
     from vafn_media.speech import (EMPTY_PHRASES, SPLICE_GAP_RANGE, TEMPLATES, mbrola_voice, phrase, pico_voice,
-                                   sample_voice)
+                                   rhvoice_voice, sample_voice)
 
     if split not in SPLIT_CODES:
         raise ValueError(f"unknown split {split!r}; choose from {list(SPLIT_CODES)}")
-    if min(mbrola, pico) < 0 or mbrola + pico > 1:
-        raise ValueError(f"the MBROLA and Pico shares must be >= 0 and sum to at most 1, got {mbrola} and {pico}")
+    if min(mbrola, pico, rhvoice) < 0 or mbrola + pico + rhvoice > 1:
+        raise ValueError(f"the MBROLA, Pico and RHVoice shares must be >= 0 and sum to at most 1, got {mbrola}, "
+                         f"{pico} and {rhvoice}")
     difficulty_code = 0 if difficulty is None else 1 + list(DIFFICULTY_LENGTHS).index(difficulty)
     rng = np.random.default_rng([seed, SPLIT_CODES[split], difficulty_code, index])
     low, high = (0, MAX_INSTRUCTION_LENGTH) if difficulty is None else DIFFICULTY_LENGTHS[difficulty]
@@ -84,13 +87,15 @@ def item_spec(seed: int, split: str, index: int, difficulty: str | None = None, 
     def stream(purpose: int) -> np.random.Generator:  # draws that leave the item's main stream untouched
         return np.random.default_rng([seed, SPLIT_CODES[split], difficulty_code, index, purpose])
 
-    if mbrola > 0 or pico > 0:
+    if mbrola > 0 or pico > 0 or rhvoice > 0:
         choice = stream(3)
         draw = choice.random()
         if draw < mbrola:
             voice = mbrola_voice(choice, heldout, voice)
         elif draw < mbrola + pico:
             voice = pico_voice(choice, heldout, voice)
+        elif draw < mbrola + pico + rhvoice:
+            voice = rhvoice_voice(choice, heldout, voice)
     template, empty_phrase = int(rng.integers(len(TEMPLATES))), int(rng.integers(len(EMPTY_PHRASES)))
     joins = None
     if splice > 0:
@@ -283,7 +288,7 @@ class TrainingData:
 
 
 def cache_key(seed: int, split: str, count: int, mbrola: float = 0.0, splice: float = 0.0, pico: float = 0.0,
-              tempo: float = 0.0) -> str:
+              tempo: float = 0.0, rhvoice: float = 0.0) -> str:
     """Name of a cached dataset, including a hash of the generator's source so stale caches are not reused.
 
     :param seed: dataset seed.
@@ -293,10 +298,11 @@ def cache_key(seed: int, split: str, count: int, mbrola: float = 0.0, splice: fl
     :param splice: share of items said one word at a time.
     :param pico: share of items spoken by Pico voices.
     :param tempo: chance that a degraded copy's tempo is changed.
+    :param rhvoice: share of items spoken by RHVoice voices.
     """
     digest = source_digest("dataset.py", "speech.py", "strips.py", "images.py", "corruptions.py", "constants.py",
                            "features.py", "augment.py")
-    options = (("mbrola", mbrola), ("splice", splice), ("pico", pico), ("tempo", tempo))
+    options = (("mbrola", mbrola), ("splice", splice), ("pico", pico), ("tempo", tempo), ("rhvoice", rhvoice))
     shares = "".join(f"-{name}{share:g}" for name, share in options if share > 0)
     return f"{split}-seed{seed}-n{count}{shares}-shard{SHARD_SIZE}-{digest}"
 
@@ -312,7 +318,7 @@ def source_digest(*names: str) -> str:
 
 def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CACHE, workers: int = 2,
                 progress: bool = True, mbrola: float = 0.0, splice: float = 0.0, pico: float = 0.0,
-                tempo: float = 0.0) -> TrainingData:
+                tempo: float = 0.0, rhvoice: float = 0.0) -> TrainingData:
     """Generate (or reuse) the cached training arrays of a split, one fresh process per shard, with a progress bar.
 
     :param seed: dataset seed.
@@ -325,14 +331,16 @@ def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CAC
     :param splice: share of items said one word at a time (:func:`item_spec`).
     :param pico: share of items spoken by Pico voices (:func:`item_spec`).
     :param tempo: chance that a degraded copy's tempo is changed (:func:`vafn_media.augment.random_tempo`).
+    :param rhvoice: share of items spoken by RHVoice voices (:func:`item_spec`).
     """
     from tqdm import tqdm
 
-    directory = Path(cache_dir) / cache_key(seed, split, count, mbrola, splice, pico, tempo)
+    directory = Path(cache_dir) / cache_key(seed, split, count, mbrola, splice, pico, tempo, rhvoice)
     directory.mkdir(parents=True, exist_ok=True)
     starts = range(0, count, SHARD_SIZE)
     paths = [str(directory / f"shard{s // SHARD_SIZE:04d}.npz") for s in starts]
-    shares = (("mbrola", mbrola), ("splice", splice), ("pico", pico))  # item_spec's keyword arguments (jobs are hashed)
+    # item_spec's keyword arguments, as a tuple (jobs are hashed)
+    shares = (("mbrola", mbrola), ("splice", splice), ("pico", pico), ("rhvoice", rhvoice))
     jobs = [(seed, split, s, min(SHARD_SIZE, count - s), path, shares, tempo) for s, path in zip(starts, paths)]
     todo = [job for job, path in zip(jobs, paths) if not os.path.exists(path)]
     if todo:

@@ -1,10 +1,11 @@
 """Speech engines other than espeak-ng's own voices, used only to *evaluate* the reader on voices it never trained on.
 
-Nothing here is used for training. Each engine is an external program found on ``PATH`` (Debian's ``flite``; the
-``espeak-ng`` program with the ``mbrola-us2`` voice, which ``vafn_media.train --mbrola-probability`` keeps out of
-training; ``pico2wave`` with the ``en-GB`` voice, which ``--pico-probability`` keeps out of training) or, for
-``recorded``, the words of a person's recorded telephone prompts (Debian's ``asterisk-core-sounds-en-wav``);
-:func:`available_engines` lists the ones present, and callers skip the others.
+Nothing here is used for training. Each engine is an external program found on ``PATH`` (Debian's ``flite``;
+Festival's ``text2wave`` with its British and American diphone voices; the ``espeak-ng`` program with the ``mbrola-us2``
+voice, which ``vafn_media.train --mbrola-probability`` keeps out of training; ``pico2wave`` with the ``en-GB`` voice,
+which ``--pico-probability`` keeps out of training; ``RHVoice-test`` with the voices ``--rhvoice-probability`` keeps
+out of training) or, for ``recorded``, the words of a person's recorded telephone prompts (Debian's
+``asterisk-core-sounds-en-wav``); :func:`available_engines` lists the ones present, and callers skip the others.
 """
 
 from __future__ import annotations
@@ -24,6 +25,10 @@ from vafn_media.augment import phase_vocoder_stretch
 
 #: flite voices that read arbitrary text (``awb_time`` only speaks times of day); ``kal`` synthesises at 8 kHz.
 FLITE_VOICES: tuple[str, ...] = ("slt", "rms", "awb", "kal16", "kal")
+#: Festival's diphone voices (Debian's ``festvox-rablpc16k``, ``festvox-kdlpc16k``, ``festvox-don``); its HTS voice of
+#: slt and its kal voice are left out, since flite speaks with those two speakers.
+FESTIVAL_VOICES: tuple[str, ...] = ("rab_diphone", "ked_diphone", "don_diphone")
+FESTIVAL_INSTALL = "apt-get install festival festvox-rablpc16k festvox-kdlpc16k festvox-don"
 #: MBROLA's voice directory (Debian's ``mbrola-<voice>`` packages).
 MBROLA_DIR = Path("/usr/share/mbrola")
 #: A person's voice: Allison Smith's recorded prompts for the Asterisk PBX (Debian's ``asterisk-core-sounds-en-wav``,
@@ -38,24 +43,28 @@ RECORDED_PAUSES_S: dict[str, float] = {"": 0.12, ",": 0.25, ".": 0.45}
 
 def engine_voices(engine: str) -> tuple[str, ...]:
     """The voices an evaluation engine speaks with, in the order items cycle through them."""
-    from vafn_media.speech import MBROLA_HELDOUT_VOICES, PICO_HELDOUT_VOICES
+    from vafn_media.speech import MBROLA_HELDOUT_VOICES, PICO_HELDOUT_VOICES, RHVOICE_HELDOUT_VOICES
 
-    voices = {"flite": FLITE_VOICES, "mbrola": MBROLA_HELDOUT_VOICES, "pico": PICO_HELDOUT_VOICES,
-              "recorded": ("allison",)}
+    voices = {"flite": FLITE_VOICES, "festival": FESTIVAL_VOICES, "mbrola": MBROLA_HELDOUT_VOICES,
+              "pico": PICO_HELDOUT_VOICES, "rhvoice": RHVOICE_HELDOUT_VOICES, "recorded": ("allison",)}
     if engine not in voices:
         raise ValueError(f"unknown evaluation engine {engine!r}; choose from {list(voices)}")
     return voices[engine]
 
 
 def available_engines() -> list[str]:
-    """Names of the evaluation engines installed on this machine: ``"flite"``; ``"mbrola"`` and ``"pico"`` (their
-    held-out voices); ``"recorded"`` (a person's recorded words)."""
+    """Names of the evaluation engines installed on this machine: ``"flite"``, ``"festival"``; ``"mbrola"``, ``"pico"``
+    and ``"rhvoice"`` (their held-out voices); ``"recorded"`` (a person's recorded words)."""
     engines = ["flite"] if shutil.which("flite") else []
+    if shutil.which("text2wave") and all(_festival_voice_dir(voice) for voice in FESTIVAL_VOICES):
+        engines.append("festival")
     mbrola_voices = [MBROLA_DIR / voice.removeprefix("mb-") for voice in engine_voices("mbrola")]
     if shutil.which("espeak-ng") and all(path.is_dir() for path in mbrola_voices):
         engines.append("mbrola")
     if shutil.which("pico2wave"):
         engines.append("pico")
+    if shutil.which("RHVoice-test"):
+        engines.append("rhvoice")
     if all((RECORDED_DIR / name).is_file() for name in RECORDED_WORDS.values()):
         engines.append("recorded")
     return engines
@@ -79,6 +88,35 @@ def flite_speak(text: str, voice: str = "slt", stretch: float = 1.0) -> tuple[np
         path = os.path.join(directory, "speech.wav")
         subprocess.run([program, "-voice", voice, "--setf", f"duration_stretch={stretch}", "-t", text, "-o", path],
                        check=True, capture_output=True, timeout=60)
+        waveform, rate = soundfile.read(path, dtype="float32")
+    return waveform, int(rate)
+
+
+def _festival_voice_dir(voice: str) -> Path | None:
+    """Where Festival's voice ``voice`` is installed (None when it is not)."""
+    found = sorted(Path("/usr/share/festival/voices").glob(f"*/{voice}"))
+    return found[0] if found else None
+
+
+def festival_speak(text: str, voice: str = "rab_diphone", stretch: float = 1.0) -> tuple[np.ndarray, int]:
+    """Synthesise ``text`` with Festival's text2wave program; returns (float32 waveform, sample rate).
+
+    :param text: what to say.
+    :param voice: one of :data:`FESTIVAL_VOICES`.
+    :param stretch: duration stretch (< 1 speaks faster; Festival's ``Duration_Stretch``).
+    """
+    import soundfile
+
+    program = shutil.which("text2wave")
+    if program is None:
+        raise RuntimeError(f"Festival is not installed ({FESTIVAL_INSTALL})")
+    if voice not in FESTIVAL_VOICES:
+        raise ValueError(f"unknown festival voice {voice!r}; choose from {FESTIVAL_VOICES}")
+    with tempfile.TemporaryDirectory() as directory:
+        text_path, path = os.path.join(directory, "text.txt"), os.path.join(directory, "speech.wav")
+        Path(text_path).write_text(text + "\n")
+        subprocess.run([program, "-eval", f"(voice_{voice})", "-eval", f"(Parameter.set 'Duration_Stretch {stretch})",
+                        text_path, "-o", path], check=True, capture_output=True, timeout=60)
         waveform, rate = soundfile.read(path, dtype="float32")
     return waveform, int(rate)
 
@@ -131,7 +169,8 @@ def speak_text(engine: str, text: str, voice: str, stretch: float = 1.0) -> tupl
     :param engine: a name from :func:`available_engines`.
     :param text: what to say.
     :param voice: one of the engine's :func:`engine_voices`.
-    :param stretch: duration stretch (< 1 is faster; MBROLA and Pico: espeak-ng's 175 words per minute divided by it).
+    :param stretch: duration stretch (< 1 is faster; MBROLA, Pico and RHVoice: espeak-ng's 175 words per minute
+        divided by it).
     """
     from vafn_media.speech import DEFAULT_RATE, ESPEAK_SAMPLE_RATE, Voice, synthesizer_for
 
@@ -139,6 +178,8 @@ def speak_text(engine: str, text: str, voice: str, stretch: float = 1.0) -> tupl
         raise ValueError(f"unknown {engine} voice {voice!r}; choose from {engine_voices(engine)}")
     if engine == "flite":
         return flite_speak(text, voice, stretch)
+    if engine == "festival":
+        return festival_speak(text, voice, stretch)
     if engine == "recorded":
         return recorded_speak(text, stretch)
     settings = Voice(voice, rate=round(DEFAULT_RATE / stretch))

@@ -69,6 +69,12 @@ MBROLA_INSTALL = "apt-get install espeak-ng mbrola mbrola-us1 mbrola-us2 mbrola-
 PICO_TRAIN_VOICES: tuple[str, ...] = ("pico-en-US",)
 PICO_HELDOUT_VOICES: tuple[str, ...] = ("pico-en-GB",)
 PICO_INSTALL = "apt-get install libttspico-utils (non-free)"
+#: RHVoice's English voices (a fourth synthesiser: statistical parametric, its own speakers), spoken by Debian's
+#: ``RHVoice-test`` program: a share of the training data (``--rhvoice-probability``). slt (a speaker flite also has)
+#: and lyubov are held out.
+RHVOICE_TRAIN_VOICES: tuple[str, ...] = ("rh-alan", "rh-bdl", "rh-clb", "rh-evgeniy-eng")
+RHVOICE_HELDOUT_VOICES: tuple[str, ...] = ("rh-slt", "rh-lyubov")
+RHVOICE_INSTALL = "apt-get install rhvoice rhvoice-english"
 #: Joins of an utterance spoken one word at a time (``speak(joins=...)``): silence between words in seconds, negative
 #: values overlap the words with a linear cross-fade.
 SPLICE_GAP_RANGE: tuple[float, float] = (-0.04, 0.06)
@@ -146,19 +152,30 @@ def sample_voice(rng: np.random.Generator, heldout: bool) -> Voice:
     )
 
 
-def mbrola_voice(rng: np.random.Generator, heldout: bool, base: Voice) -> Voice:
-    """An MBROLA voice from the training or held-out pool, at ``base``'s rate, pitch and word gap.
-
-    espeak-ng's variants shape its own formant voice, so an MBROLA voice has none.
-    """
-    voices = MBROLA_HELDOUT_VOICES if heldout else MBROLA_TRAIN_VOICES
+def _pooled_voice(rng: np.random.Generator, voices: Sequence[str], base: Voice) -> Voice:
+    """A voice of another synthesiser drawn from ``voices``, at ``base``'s rate, pitch and word gap (espeak-ng's
+    variants shape only its own formant voice, so it has none)."""
     return replace(base, name=str(voices[rng.integers(len(voices))]), variant="")
+
+
+def mbrola_voice(rng: np.random.Generator, heldout: bool, base: Voice) -> Voice:
+    """An MBROLA voice from the training or held-out pool, at ``base``'s rate, pitch and word gap."""
+    return _pooled_voice(rng, MBROLA_HELDOUT_VOICES if heldout else MBROLA_TRAIN_VOICES, base)
 
 
 def pico_voice(rng: np.random.Generator, heldout: bool, base: Voice) -> Voice:
     """A Pico voice from the training or held-out pool, at ``base``'s rate, pitch and word gap."""
-    voices = PICO_HELDOUT_VOICES if heldout else PICO_TRAIN_VOICES
-    return replace(base, name=str(voices[rng.integers(len(voices))]), variant="")
+    return _pooled_voice(rng, PICO_HELDOUT_VOICES if heldout else PICO_TRAIN_VOICES, base)
+
+
+def rhvoice_voice(rng: np.random.Generator, heldout: bool, base: Voice) -> Voice:
+    """An RHVoice voice from the training or held-out pool, at ``base``'s rate, pitch and word gap."""
+    return _pooled_voice(rng, RHVOICE_HELDOUT_VOICES if heldout else RHVOICE_TRAIN_VOICES, base)
+
+
+def _with_breaks(text: str, wordgap: int) -> str:
+    """``text`` with an SSML ``<break>`` of ``wordgap`` x 10 ms between its words (unchanged for 0)."""
+    return f' <break time="{10 * wordgap}ms"/> '.join(text.split()) if wordgap > 0 else text
 
 
 def synthesize_pico(text: str, voice: Voice) -> np.ndarray:
@@ -177,10 +194,8 @@ def synthesize_pico(text: str, voice: Voice) -> np.ndarray:
     program = shutil.which("pico2wave")
     if program is None:
         raise RuntimeError(f"Pico voices need the pico2wave program: {PICO_INSTALL}")
-    if voice.wordgap > 0:
-        text = f' <break time="{10 * voice.wordgap}ms"/> '.join(text.split())
     markup = (f'<pitch level="{50 + voice.pitch}"><speed level="{round(100 * voice.rate / DEFAULT_RATE)}">'
-              f"{text}</speed></pitch>")
+              f"{_with_breaks(text, voice.wordgap)}</speed></pitch>")
     with tempfile.TemporaryDirectory() as directory:
         path = os.path.join(directory, "speech.wav")
         result = subprocess.run([program, "-l", voice.name.removeprefix("pico-"), "-w", path, markup],
@@ -188,6 +203,34 @@ def synthesize_pico(text: str, voice: Voice) -> np.ndarray:
         if result.returncode != 0 or not os.path.isfile(path):
             raise RuntimeError(f"pico2wave could not speak with {voice.name!r} "
                                f"({result.stderr.decode().strip()!r}); install it: {PICO_INSTALL}")
+        waveform, rate = soundfile.read(path, dtype="float32")
+    return resample(waveform, int(rate), ESPEAK_SAMPLE_RATE)
+
+
+def synthesize_rhvoice(text: str, voice: Voice) -> np.ndarray:
+    """Speak ``text`` with an RHVoice voice through the RHVoice-test program; float32 at :data:`ESPEAK_SAMPLE_RATE`.
+
+    As for Pico, espeak's default rate and pitch 50 are RHVoice's 100 % rate and pitch, the word gap an SSML break.
+
+    :param text: what to say.
+    :param voice: a voice named ``rh-<name>`` (:data:`RHVOICE_TRAIN_VOICES`, :data:`RHVOICE_HELDOUT_VOICES`).
+    """
+    import soundfile
+
+    from vafn_media.augment import resample
+
+    program = shutil.which("RHVoice-test")
+    if program is None:
+        raise RuntimeError(f"RHVoice voices need the RHVoice-test program: {RHVOICE_INSTALL}")
+    with tempfile.TemporaryDirectory() as directory:
+        path = os.path.join(directory, "speech.wav")
+        result = subprocess.run([program, "-s", "-p", voice.name.removeprefix("rh-"),
+                                 "-r", str(round(100 * voice.rate / DEFAULT_RATE)), "-t", str(50 + voice.pitch),
+                                 "-o", path], input=f"<speak>{_with_breaks(text, voice.wordgap)}</speak>".encode(),
+                                capture_output=True, timeout=60)
+        if result.returncode != 0 or not os.path.isfile(path) or os.path.getsize(path) <= 44:
+            raise RuntimeError(f"RHVoice-test could not speak with {voice.name!r} "
+                               f"({result.stderr.decode().strip()!r}); install it: {RHVOICE_INSTALL}")
         waveform, rate = soundfile.read(path, dtype="float32")
     return resample(waveform, int(rate), ESPEAK_SAMPLE_RATE)
 
@@ -321,12 +364,14 @@ def splice_words(words: Sequence[np.ndarray], gaps_s: Sequence[float], rate: int
 
 
 def synthesizer_for(voice: Voice) -> Callable[[str, Voice], np.ndarray]:
-    """The function that says text in ``voice`` at :data:`ESPEAK_SAMPLE_RATE`: MBROLA (``mb-``), Pico (``pico-``) or
-    espeak-ng's own voices."""
+    """The function that says text in ``voice`` at :data:`ESPEAK_SAMPLE_RATE`: MBROLA (``mb-``), Pico (``pico-``),
+    RHVoice (``rh-``) or espeak-ng's own voices."""
     if voice.name.startswith("mb-"):
         return synthesize_mbrola
     if voice.name.startswith("pico-"):
         return synthesize_pico
+    if voice.name.startswith("rh-"):
+        return synthesize_rhvoice
     return EspeakSynthesizer.shared().synthesize
 
 

@@ -176,7 +176,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--pico-probability", type=float, default=0.0,
                         help="share of utterances (training and validation) spoken by an SVOX Pico voice through the "
                              "pico2wave program (held-out voice en-GB in the held-out split); needs Debian's "
-                             "libttspico-utils package; --mbrola-probability + --pico-probability <= 1")
+                             "libttspico-utils package")
+    parser.add_argument("--rhvoice-probability", type=float, default=0.0,
+                        help="share of utterances (training and validation) spoken by an RHVoice voice through the "
+                             "RHVoice-test program (held-out voices slt and lyubov in the held-out split); needs "
+                             "Debian's rhvoice and rhvoice-english packages; the MBROLA, Pico and RHVoice shares sum "
+                             "to at most 1")
     parser.add_argument("--splice-probability", type=float, default=0.0,
                         help="share of training utterances said one word at a time and joined with random gaps and "
                              "overlaps (vafn_media.speech.SPLICE_GAP_RANGE), for word boundaries no synthesiser makes")
@@ -209,16 +214,17 @@ def main(argv=None) -> dict:
     rng = np.random.default_rng(args.seed)
     started = time.time()
     cache = args.cache_dir or DEFAULT_CACHE
-    for name in ("mbrola_probability", "pico_probability", "splice_probability", "tempo_probability"):
+    for name in ("mbrola_probability", "pico_probability", "rhvoice_probability", "splice_probability",
+                 "tempo_probability"):
         if not 0 <= getattr(args, name) <= 1:
             raise SystemExit(f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(args, name)}")
-    if args.mbrola_probability + args.pico_probability > 1:
-        raise SystemExit("--mbrola-probability + --pico-probability must not exceed 1")
-    train = build_cache(args.seed, "train", args.train_items, cache, args.workers, mbrola=args.mbrola_probability,
-                        splice=args.splice_probability, pico=args.pico_probability, tempo=args.tempo_probability)
+    if args.mbrola_probability + args.pico_probability + args.rhvoice_probability > 1:
+        raise SystemExit("--mbrola-probability + --pico-probability + --rhvoice-probability must not exceed 1")
+    voices = {"mbrola": args.mbrola_probability, "pico": args.pico_probability, "rhvoice": args.rhvoice_probability}
+    train = build_cache(args.seed, "train", args.train_items, cache, args.workers, splice=args.splice_probability,
+                        tempo=args.tempo_probability, **voices)
     validation = {split: build_cache(args.seed, split, args.val_items, cache, args.workers,
-                                     mbrola=args.mbrola_probability, pico=args.pico_probability,
-                                     tempo=args.tempo_probability)
+                                     tempo=args.tempo_probability, **voices)
                   for split in ("test", "heldout")}
     camera = None
     if args.camera_probability > 0:
