@@ -9,10 +9,11 @@ handwriting and fonts never seen in training); a second table compares it with i
 section tests cross-modal alignment: a fresh decoder trained on one modality's Φ reads the other's.
 
 A robustness section (``results/instruction_table_robust.{md,csv}``) reads spoken instructions of lengths 1-10 from
-espeak-ng's held-out voices and from every *other* speech engine installed (flite, if present; an engine that is
-absent is skipped, never faked) under five conditions: clean 16 kHz, 8 kHz telephone band, reverberation
-(RT60 0.6 s), white noise at 10 dB SNR, and fast speech (the engine's own rate control). Per cell: exact sequence and
-per-digit accuracy for audio alone and audio + image, the image alone, and how often a wrong result is unflagged.
+espeak-ng's held-out voices and from every *other* speech engine installed (flite, Festival, the held-out voices of
+MBROLA, Pico and RHVoice, a person's recorded words; one that is absent is skipped, never faked) under five
+conditions: clean 16 kHz, 8 kHz telephone band, reverberation (RT60 0.6 s), white noise at 10 dB SNR, and fast speech
+(the engine's own rate control). Per cell: exact sequence and per-digit accuracy for audio alone and audio + image,
+the image alone, and how often a wrong result is unflagged.
 
     OMP_NUM_THREADS=1 python benchmarks/instruction_table.py            # full: 5 seeds x 100 per cell
     OMP_NUM_THREADS=1 python benchmarks/instruction_table.py --items 20 --seeds 1   # quick look
@@ -299,12 +300,14 @@ def main() -> None:
         load = os.getloadavg()
         shares = generator.metadata.get("args", {})
         engines = "; ".join(engine_note(name, voice, float(shares.get(f"{name}_probability", 0)))
-                            for name, voice in (("mbrola", "MBROLA's voice us2"), ("pico", "SVOX Pico's voice en-GB")))
+                            for name, voice in (("mbrola", "MBROLA's voice us2"), ("pico", "SVOX Pico's voice en-GB"),
+                                                ("rhvoice", "RHVoice's voices slt and lyubov")))
         pause, comma, stop = (RECORDED_PAUSES_S[mark] for mark in ("", ",", "."))
         text = "\n".join([
             f"Robustness of the speech reader: {args.robust_items} held-out instructions (lengths 1-10, random "
             f"phrasings) per engine; espeak = held-out voices and variants of the training engine; {engines}; "
-            "flite was never used for training; recorded = a person's voice, never used for training (Allison "
+            "flite and festival (Festival's diphone voices rab, ked and don) were never used for training; "
+            "recorded = a person's voice, never used for training (Allison "
             f"Smith's Asterisk prompts: 8 kHz recordings of single words, joined with pauses of {pause} s, {comma} s "
             f"after a comma and {stop} s after a full stop, in the {len(recorded_templates())} phrasings they can "
             "say; its fast rendition is the recording time-compressed by a phase vocoder, not a person speaking "

@@ -171,6 +171,64 @@ def test_pico_voice_follows_rate_and_is_an_evaluation_engine_by_its_held_out_voi
     with pytest.raises(ValueError, match="unknown pico voice 'pico-en-US'"):
         speak_text("pico", "two", "pico-en-US")  # a training voice is never an evaluation voice
 
+def test_rhvoice_share_follows_pico_on_its_stream_and_keeps_its_pools_apart():
+    from vafn_media.dataset import cache_key, item_spec
+    from vafn_media.speech import RHVOICE_HELDOUT_VOICES, RHVOICE_TRAIN_VOICES
+
+    assert not set(RHVOICE_TRAIN_VOICES) & set(RHVOICE_HELDOUT_VOICES)
+    before = [item_spec(0, "train", i, mbrola=0.3, pico=0.1) for i in range(300)]
+    assert before == [item_spec(0, "train", i, mbrola=0.3, pico=0.1, rhvoice=0.0) for i in range(300)]
+    after = [item_spec(0, "train", i, mbrola=0.3, pico=0.1, rhvoice=0.25) for i in range(300)]
+    assert [(s.arms, s.template) for s in before] == [(s.arms, s.template) for s in after]
+    changed = [(a, b) for a, b in zip(before, after) if a != b]
+    assert 45 <= len(changed) <= 105  # about 25 %, taken from espeak's share only: MBROLA and Pico items stay
+    assert all(a.voice.name[:3] not in ("mb-", "pic") and b.voice.name in RHVOICE_TRAIN_VOICES
+               and b.voice.rate == a.voice.rate for a, b in changed)
+    heldout = {item_spec(0, "heldout", i, rhvoice=0.5).voice.name for i in range(100)}
+    assert set(RHVOICE_HELDOUT_VOICES) <= heldout and not heldout & set(RHVOICE_TRAIN_VOICES)
+    assert cache_key(0, "train", 10) != cache_key(0, "train", 10, rhvoice=0.25)
+    with pytest.raises(ValueError, match="sum to at most 1"):
+        item_spec(0, "train", 0, mbrola=0.5, pico=0.2, rhvoice=0.4)
+
+
+def test_rhvoice_voice_without_the_program_names_the_package(monkeypatch):
+    import vafn_media.speech as speech
+
+    monkeypatch.setattr(speech.shutil, "which", lambda name: None)
+    with pytest.raises(RuntimeError, match="apt-get install rhvoice rhvoice-english"):
+        speech.speak((2, 3), speech.Voice("rh-alan"))
+
+
+@pytest.mark.skipif(shutil.which("RHVoice-test") is None, reason="needs Debian's rhvoice and rhvoice-english")
+def test_rhvoice_follows_rate_and_is_an_evaluation_engine_by_its_held_out_voices():
+    from vafn_media.engines import available_engines, engine_voices, speak_text, speak_with
+    from vafn_media.speech import ESPEAK_SAMPLE_RATE, RHVOICE_HELDOUT_VOICES, Voice, speak
+
+    slow = speak((1, 2, 3), Voice("rh-bdl", rate=130))
+    fast = speak((1, 2, 3), Voice("rh-bdl", rate=260))
+    paused = speak((1, 2, 3), Voice("rh-bdl", rate=130, wordgap=15))
+    assert slow.dtype == np.float32 and 0.5 * ESPEAK_SAMPLE_RATE < len(fast) < 0.8 * len(slow) < 0.8 * len(paused)
+    assert "rhvoice" in available_engines() and engine_voices("rhvoice") == RHVOICE_HELDOUT_VOICES
+    normal, rate = speak_with("rhvoice", (1, 2, 3), "rh-slt")
+    assert rate == ESPEAK_SAMPLE_RATE and np.abs(normal).max() > 0.05
+    with pytest.raises(ValueError, match="unknown rhvoice voice 'rh-alan'"):
+        speak_text("rhvoice", "two", "rh-alan")  # a training voice is never an evaluation voice
+
+
+@pytest.mark.skipif(shutil.which("text2wave") is None, reason="needs Debian's festival and its festvox voices")
+def test_festival_speaks_its_diphone_voices_faster_when_stretched():
+    from vafn_media.engines import FESTIVAL_VOICES, available_engines, speak_text, speak_with
+
+    assert "festival" in available_engines()
+    for voice in FESTIVAL_VOICES:
+        normal, rate = speak_with("festival", (2, 3, 1), voice, template=2)
+        fast, fast_rate = speak_with("festival", (2, 3, 1), voice, template=2, stretch=0.7)
+        assert rate == fast_rate and normal.dtype == np.float32 and np.abs(normal).max() > 0.05
+        assert 0.6 * len(normal) < len(fast) < 0.8 * len(normal)
+    with pytest.raises(ValueError, match="unknown festival voice 'kal_diphone'"):
+        speak_text("festival", "two", "kal_diphone")  # flite speaks with kal: not a second engine's voice
+
+
 def test_splice_words_joins_with_gaps_and_cross_fades():
     from vafn_media.speech import splice_words
 
@@ -278,8 +336,8 @@ def test_evaluation_engines_name_their_voices_and_reject_others():
     assert engine_voices("flite") == FLITE_VOICES
     assert engine_voices("mbrola") == MBROLA_HELDOUT_VOICES
     assert not set(engine_voices("mbrola")) & set(MBROLA_TRAIN_VOICES)
-    with pytest.raises(ValueError, match="unknown evaluation engine 'festival'"):
-        engine_voices("festival")
+    with pytest.raises(ValueError, match="unknown evaluation engine 'gtts'"):
+        engine_voices("gtts")
     with pytest.raises(ValueError, match="unknown mbrola voice 'mb-us1'"):
         speak_text("mbrola", "two", "mb-us1")  # a training voice is never an evaluation voice
 
