@@ -2,7 +2,8 @@
 
 For choosing between training runs: the items come from a seed of their own (12345), never the one of
 ``instruction_table.py``'s robustness section, so the table stays an independent check of the chosen checkpoint.
-Engines: espeak-ng's held-out voices, and every evaluation engine installed (flite, if present); none is trained on.
+Engines: espeak-ng's held-out voices, and every evaluation engine installed (``engines.available_engines``:
+flite, Festival, the held-out voices of MBROLA, Pico and RHVoice, a person's recorded words); none is trained on.
 ``--errors`` adds, per checkpoint and engine, where clean speech is misread: exact % per phrasing and per voice, and
 which digits are dropped and inserted.
 
