@@ -133,18 +133,25 @@ def _frame_analysis(size: int) -> tuple[np.ndarray, slice]:
     return window, slice(int(band[0]), int(band[-1]) + 1)
 
 
-def _frame_stats(waveform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-frame level (dB) and 100-3400 Hz spectral flatness of a clip at SAMPLE_RATE (20 ms frames)."""
+def _frames(waveform: np.ndarray) -> np.ndarray:
+    """A clip at SAMPLE_RATE as rows of 20 ms frames (one shorter row when the whole clip is shorter)."""
     size = int(_FRAME_SECONDS * SAMPLE_RATE)
     count = max(1, len(waveform) // size)
-    frames = waveform[: count * size].reshape(count, size) if len(waveform) >= size else waveform[None]
-    power = np.mean(np.square(frames, dtype=np.float64), axis=1)
+    return waveform[: count * size].reshape(count, size) if len(waveform) >= size else waveform[None]
+
+
+def _frame_levels(frames: np.ndarray) -> np.ndarray:
+    """Level (dB) of each frame of :func:`_frames`."""
+    return 10 * np.log10(np.mean(np.square(frames, dtype=np.float64), axis=1) + 1e-20)
+
+
+def _frame_flatness(frames: np.ndarray) -> np.ndarray:
+    """100-3400 Hz spectral flatness of each frame of :func:`_frames`."""
     window, band = _frame_analysis(frames.shape[1])
     # Only the band every input rate has. Column-major like the boolean-mask selection this replaces, so that the
     # means below sum in the same order and give the same numbers bit for bit.
     spectrum = np.abs(np.asfortranarray(np.fft.rfft(frames * window, axis=1)[:, band])) ** 2 + 1e-20
-    flatness = np.exp(np.mean(np.log(spectrum), axis=1)) / np.mean(spectrum, axis=1)
-    return 10 * np.log10(power + 1e-20), flatness
+    return np.exp(np.mean(np.log(spectrum), axis=1)) / np.mean(spectrum, axis=1)
 
 
 def speech_problems(waveform: np.ndarray) -> list[str]:
@@ -160,13 +167,15 @@ def inspect_speech(waveform: np.ndarray) -> tuple[list[str], tuple[bool, bool]]:
 
     :param waveform: float32 samples at SAMPLE_RATE.
     """
-    levels, flatness = _frame_stats(waveform)
+    frames = _frames(waveform)
+    levels = _frame_levels(frames)
     floor, loud = (float(value) for value in np.percentile(levels, (10, 95)))
     dynamic = loud - floor
-    tonal = float(np.percentile(flatness, 10))
-    if tonal > NOISE_MIN_FLATNESS and dynamic < NOISE_MAX_RANGE_DB:
-        raise ValueError(f"audio is noise, not speech: its level varies by only {dynamic:.1f} dB and even its most "
-                         f"tonal frames are flat (spectral flatness {tonal:.2f})")
+    if dynamic < NOISE_MAX_RANGE_DB:  # the flatness (an FFT of every frame) decides only then
+        tonal = float(np.percentile(_frame_flatness(frames), 10))
+        if tonal > NOISE_MIN_FLATNESS:
+            raise ValueError(f"audio is noise, not speech: its level varies by only {dynamic:.1f} dB and even its "
+                             f"most tonal frames are flat (spectral flatness {tonal:.2f})")
     if dynamic < MIN_DYNAMIC_RANGE_DB:
         return [], (False, False)
     edge = max(1, int(round(EDGE_SECONDS / _FRAME_SECONDS)))
