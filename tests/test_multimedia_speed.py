@@ -119,6 +119,22 @@ def test_audio_inference_equals_model_encode():
                 assert torch.allclose(got, want, atol=1e-4), frames
 
 
+def test_dilated_convolutions_by_phases_equal_the_dilated_kernel():
+    """AudioInference runs a dilated convolution as undilated ones of the input's phases: the same numbers, bit for
+    bit, at every length (a length up to the dilation goes to the dilated kernel)."""
+    from vafn_media.model import _NATIVE_DILATED2D, AudioInference
+
+    torch.manual_seed(0)
+    with torch.inference_mode():
+        for dilation in (2, 4):
+            spec = AudioInference._conv_spec(torch.nn.Conv1d(96, 96, 3, padding=dilation, dilation=dilation))
+            for batch, length in [(1, n) for n in range(1, 300)] + [(2, 37), (3, 130)]:
+                x = torch.randn(batch, 96, length)
+                want = _NATIVE_DILATED2D(x[:, :, None, :], spec[1], (1, 3), spec[2], (1, 1), (0, dilation),
+                                         (1, dilation))[:, :, 0]
+                assert torch.equal(AudioInference._conv(x, spec), want), (dilation, batch, length)
+
+
 @pytest.fixture(scope="module")
 def generator():
     from vafn_media import InstructionGenerator

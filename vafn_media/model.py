@@ -251,10 +251,29 @@ class AudioInference:
         weight, weight2d, bias, kernel, stride, padding, dilation = spec
         if dilation == 1 and _NATIVE_CONV2D is not None:
             return _NATIVE_CONV2D(x[:, :, None, :], weight2d, (1, kernel), bias, (1, stride), (0, padding))[:, :, 0]
+        if stride == 1 and padding % dilation == 0 and x.shape[-1] > dilation and _NATIVE_CONV2D is not None:
+            return AudioInference._phase_conv(x, spec)
         if dilation > 1 and _NATIVE_DILATED2D is not None:
             return _NATIVE_DILATED2D(x[:, :, None, :], weight2d, (1, kernel), bias, (1, stride), (0, padding),
                                      (1, dilation))[:, :, 0]
         return F.conv1d(x, weight, bias, stride, padding, dilation)
+
+    @staticmethod
+    def _phase_conv(x: torch.Tensor, spec: tuple) -> torch.Tensor:
+        """A dilated stride-1 convolution as the undilated one of each of x's ``dilation`` interleaved phases.
+
+        The same products summed in the same order as PyTorch's dilated kernel (the same numbers, measured; phases of
+        one frame are left to that kernel, as the matrix product of a single column sums in another order), in about
+        half its time.
+        """
+        _, weight2d, bias, kernel, _, padding, dilation = spec
+        batch, channels, length = x.shape
+        padded = -(-length // dilation) * dilation
+        phases = F.pad(x, (0, padded - length)).reshape(batch, channels, -1, dilation).permute(0, 3, 1, 2)
+        y = _NATIVE_CONV2D(phases.reshape(batch * dilation, channels, 1, -1), weight2d, (1, kernel), bias, (1, 1),
+                           (0, padding // dilation))
+        return y.reshape(batch, dilation, -1, padded // dilation).permute(0, 2, 3, 1).reshape(batch, -1, padded)[
+            :, :, :length]
 
     def __call__(self, features: torch.Tensor) -> torch.Tensor:
         """Φ (B, T', LATENT_DIM) of log-mel features (B, N_MELS, T) (call under ``torch.inference_mode``).
