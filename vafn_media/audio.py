@@ -249,20 +249,19 @@ def load_audio(source: AudioSource, sample_rate: int | None = None) -> Audio:
         raise ValueError("audio is empty (0 samples)")
     if waveform.size / rate > MAX_AUDIO_SECONDS:
         raise ValueError(f"audio lasts {waveform.size / rate:.1f} s; at most {MAX_AUDIO_SECONDS:.0f} s are accepted")
-    bad = int(np.count_nonzero(~np.isfinite(waveform)))
-    if bad:
-        raise ValueError(f"audio contains {bad} NaN or infinite samples")
+    low, high = float(waveform.min()), float(waveform.max())
+    if not (np.isfinite(low) and np.isfinite(high)):  # both are NaN when any sample is
+        raise ValueError(f"audio contains {np.count_nonzero(~np.isfinite(waveform))} NaN or infinite samples")
     if waveform.size / rate < MIN_AUDIO_SECONDS:
         raise ValueError(f"audio is too short to hold a command: {waveform.size} samples = "
                          f"{1000 * waveform.size / rate:.1f} ms (at least {1000 * MIN_AUDIO_SECONDS:.0f} ms)")
-    magnitude = np.abs(waveform)
-    peak = float(magnitude.max())
+    peak = max(high, -low)
     rms = float(np.sqrt(np.mean(np.square(waveform, dtype=np.float64))))
     level_dbfs = 20 * np.log10(max(rms, 1e-12))
     if peak == 0.0 or level_dbfs < SILENCE_DBFS:
         raise ValueError(f"audio is silent (RMS {level_dbfs:.0f} dBFS < {SILENCE_DBFS:.0f} dBFS)")
     warnings = []
-    clipped = float(np.mean(magnitude >= CLIP_LEVEL))
+    clipped = float(np.mean(np.abs(waveform) >= CLIP_LEVEL)) if peak >= CLIP_LEVEL else 0.0
     if clipped > CLIP_FRACTION:
         warnings.append(f"audio is clipped ({100 * clipped:.1f}% of samples at full scale)")
     if peak > 1.0 + 1e-3:
