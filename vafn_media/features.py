@@ -66,8 +66,10 @@ def at_peak(waveform: np.ndarray, peak: float = READ_PEAK) -> np.ndarray:
     :param waveform: float32 samples.
     :param peak: the peak to scale to.
     """
-    largest = float(np.abs(waveform).max()) if waveform.size else 0.0
-    return np.asarray(waveform, np.float32) if largest == 0.0 else (waveform * (peak / largest)).astype(np.float32)
+    largest = max(float(waveform.max()), -float(waveform.min())) if waveform.size else 0.0
+    if largest == 0.0:
+        return np.asarray(waveform, np.float32)
+    return (waveform * (peak / largest)).astype(np.float32, copy=False)
 
 
 @lru_cache(maxsize=8)
