@@ -58,6 +58,17 @@ def test_frame_stats_equal_the_reference_bit_for_bit(seconds):
         assert np.array_equal(got, want)
 
 
+def test_percentiles_equal_numpy_bit_for_bit():
+    from vafn_media.audio import _percentiles
+
+    rng = np.random.default_rng(0)
+    for size in list(range(1, 40)) + [99, 100, 101, 270, 1000]:
+        for values in (rng.normal(-40, 15, size), np.round(rng.normal(0, 3, size)), np.full(size, -200.0)):
+            for percents in ((10, 95), (10,), (0, 50, 100), (12.5, 99.9)):
+                want = np.percentile(values, percents)
+                assert np.array_equal(_percentiles(values, percents), want), (size, percents)
+
+
 @pytest.mark.parametrize("rate", [SAMPLE_RATE, 8_000, 44_100])
 def test_single_clip_features_equal_the_batch_path_and_librosa(rate):
     """log_mel (one clip, no mask) == log_mel_batch of a batch of one, bit for bit; both == librosa's log-mel."""

@@ -154,6 +154,21 @@ def _frame_flatness(frames: np.ndarray) -> np.ndarray:
     return np.exp(np.mean(np.log(spectrum), axis=1)) / np.mean(spectrum, axis=1)
 
 
+def _percentiles(values: np.ndarray, percents: tuple[float, ...]) -> list[float]:
+    """``np.percentile(values, percents)`` of a 1-D array: the same numbers (its linear interpolation, done from the
+    nearer neighbour as numpy does) without its overhead, which was most of the cost on a clip's few hundred frames."""
+    ordered = np.sort(values).tolist()
+    last = len(ordered) - 1
+    result = []
+    for percent in percents:
+        position = last * (percent / 100)
+        below = min(int(position), last)
+        low, high = ordered[below], ordered[min(below + 1, last)]
+        fraction = position - below
+        result.append(high - (high - low) * (1 - fraction) if fraction >= 0.5 else low + (high - low) * fraction)
+    return result
+
+
 def speech_problems(waveform: np.ndarray) -> list[str]:
     """Why a clip at SAMPLE_RATE may not be a complete spoken command (warnings); ValueError when it is noise.
 
@@ -169,10 +184,10 @@ def inspect_speech(waveform: np.ndarray) -> tuple[list[str], tuple[bool, bool]]:
     """
     frames = _frames(waveform)
     levels = _frame_levels(frames)
-    floor, loud = (float(value) for value in np.percentile(levels, (10, 95)))
+    floor, loud = _percentiles(levels, (10, 95))
     dynamic = loud - floor
     if dynamic < NOISE_MAX_RANGE_DB:  # the flatness (an FFT of every frame) decides only then
-        tonal = float(np.percentile(_frame_flatness(frames), 10))
+        (tonal,) = _percentiles(_frame_flatness(frames), (10,))
         if tonal > NOISE_MIN_FLATNESS:
             raise ValueError(f"audio is noise, not speech: its level varies by only {dynamic:.1f} dB and even its "
                              f"most tonal frames are flat (spectral flatness {tonal:.2f})")
