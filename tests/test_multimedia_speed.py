@@ -69,6 +69,21 @@ def test_percentiles_equal_numpy_bit_for_bit():
                 assert np.array_equal(_percentiles(values, percents), want), (size, percents)
 
 
+def test_the_floor_of_at_peak_leaves_the_features_unchanged():
+    """at_peak zeroes the low cut's ringing over digital silence far below the peak; the features stay the same."""
+    from vafn_media.constants import READ_PEAK
+    from vafn_media.features import at_peak, log_mel, low_cut
+
+    waveform = np.concatenate([np.zeros(SAMPLE_RATE // 4, np.float32), _signal(1.0), np.zeros(SAMPLE_RATE // 2,
+                                                                                               np.float32)])
+    filtered = low_cut(waveform, SAMPLE_RATE)
+    floored = at_peak(filtered)
+    plain = (filtered * (READ_PEAK / float(np.abs(filtered).max()))).astype(np.float32)
+    assert np.count_nonzero(floored != plain) > 1000  # the ringing's tail is gone ...
+    assert np.array_equal(floored[np.abs(plain) > READ_PEAK * 1e-10], plain[np.abs(plain) > READ_PEAK * 1e-10])
+    assert torch.equal(log_mel(floored, SAMPLE_RATE), log_mel(plain, SAMPLE_RATE))  # ... and the features are equal
+
+
 @pytest.mark.parametrize("rate", [SAMPLE_RATE, 8_000, 44_100])
 def test_single_clip_features_equal_the_batch_path_and_librosa(rate):
     """log_mel (one clip, no mask) == log_mel_batch of a batch of one, bit for bit; both == librosa's log-mel."""

@@ -61,7 +61,11 @@ def low_cut(waveform: np.ndarray, sample_rate: int, cutoff_hz: float = LOW_CUT_H
 
 def at_peak(waveform: np.ndarray, peak: float = READ_PEAK) -> np.ndarray:
     """The waveform scaled so that its largest magnitude is ``peak`` (unchanged when it is all zeros; see
-    :data:`vafn_media.constants.READ_PEAK`).
+    :data:`vafn_media.constants.READ_PEAK`), with samples more than 240 dB below ``peak`` set to zero.
+
+    Those are the low cut's ringing over digital silence, decaying towards float32's subnormal numbers, on which the
+    STFT, the power and the mel product ran about a hundred times slower per value (0.3 ms of a 5 s clip); a frame of
+    them has a mel power ten orders of magnitude under LOG_EPS, so the features are the same bit for bit.
 
     :param waveform: float32 samples.
     :param peak: the peak to scale to.
@@ -69,7 +73,9 @@ def at_peak(waveform: np.ndarray, peak: float = READ_PEAK) -> np.ndarray:
     largest = max(float(waveform.max()), -float(waveform.min())) if waveform.size else 0.0
     if largest == 0.0:
         return np.asarray(waveform, np.float32)
-    return (waveform * (peak / largest)).astype(np.float32, copy=False)
+    scaled = (waveform * (peak / largest)).astype(np.float32, copy=False)
+    scaled[np.abs(scaled) < peak * 2.0**-40] = 0.0
+    return scaled
 
 
 @lru_cache(maxsize=8)
