@@ -149,28 +149,6 @@ def test_pico_share_follows_mbrola_on_its_stream_and_keeps_its_pools_apart():
         item_spec(0, "train", 0, mbrola=0.7, pico=0.4)
 
 
-def test_pico_voice_without_the_program_names_the_package(monkeypatch):
-    import vafn_media.speech as speech
-
-    monkeypatch.setattr(speech.shutil, "which", lambda name: None)
-    with pytest.raises(RuntimeError, match="apt-get install libttspico-utils"):
-        speech.speak((2, 3), speech.Voice("pico-en-US"))
-
-
-@pytest.mark.skipif(shutil.which("pico2wave") is None, reason="needs Debian's libttspico-utils (pico2wave)")
-def test_pico_voice_follows_rate_and_is_an_evaluation_engine_by_its_held_out_voice():
-    from vafn_media.engines import available_engines, engine_voices, speak_text, speak_with
-    from vafn_media.speech import ESPEAK_SAMPLE_RATE, PICO_HELDOUT_VOICES, Voice, speak
-
-    slow = speak((1, 2, 3), Voice("pico-en-US", rate=130))
-    fast = speak((1, 2, 3), Voice("pico-en-US", rate=260))
-    assert slow.dtype == np.float32 and 0.5 * ESPEAK_SAMPLE_RATE < len(fast) < 0.8 * len(slow)
-    assert "pico" in available_engines() and engine_voices("pico") == PICO_HELDOUT_VOICES
-    normal, rate = speak_with("pico", (1, 2, 3), "pico-en-GB")
-    assert rate == ESPEAK_SAMPLE_RATE and np.abs(normal).max() > 0.05
-    with pytest.raises(ValueError, match="unknown pico voice 'pico-en-US'"):
-        speak_text("pico", "two", "pico-en-US")  # a training voice is never an evaluation voice
-
 def test_rhvoice_share_follows_pico_on_its_stream_and_keeps_its_pools_apart():
     from vafn_media.dataset import cache_key, item_spec
     from vafn_media.speech import RHVOICE_HELDOUT_VOICES, RHVOICE_TRAIN_VOICES
@@ -191,28 +169,35 @@ def test_rhvoice_share_follows_pico_on_its_stream_and_keeps_its_pools_apart():
         item_spec(0, "train", 0, mbrola=0.5, pico=0.2, rhvoice=0.4)
 
 
-def test_rhvoice_voice_without_the_program_names_the_package(monkeypatch):
+@pytest.mark.parametrize("voice, install", [("pico-en-US", "apt-get install libttspico-utils"),
+                                            ("rh-alan", "apt-get install rhvoice rhvoice-english")])
+def test_synthesiser_voice_without_its_program_names_the_package(monkeypatch, voice, install):
     import vafn_media.speech as speech
 
     monkeypatch.setattr(speech.shutil, "which", lambda name: None)
-    with pytest.raises(RuntimeError, match="apt-get install rhvoice rhvoice-english"):
-        speech.speak((2, 3), speech.Voice("rh-alan"))
+    with pytest.raises(RuntimeError, match=install):
+        speech.speak((2, 3), speech.Voice(voice))
 
 
-@pytest.mark.skipif(shutil.which("RHVoice-test") is None, reason="needs Debian's rhvoice and rhvoice-english")
-def test_rhvoice_follows_rate_and_is_an_evaluation_engine_by_its_held_out_voices():
+@pytest.mark.parametrize("engine, program, train_voice, heldout_voice", [
+    ("pico", "pico2wave", "pico-en-US", "pico-en-GB"), ("rhvoice", "RHVoice-test", "rh-bdl", "rh-slt")])
+def test_synthesiser_follows_rate_and_gap_and_is_an_evaluation_engine_by_its_held_out_voices(
+        engine, program, train_voice, heldout_voice):
+    if shutil.which(program) is None:
+        pytest.skip(f"needs the {program} program (Debian)")
     from vafn_media.engines import available_engines, engine_voices, speak_text, speak_with
-    from vafn_media.speech import ESPEAK_SAMPLE_RATE, RHVOICE_HELDOUT_VOICES, Voice, speak
+    from vafn_media.speech import ESPEAK_SAMPLE_RATE, PICO_HELDOUT_VOICES, RHVOICE_HELDOUT_VOICES, Voice, speak
 
-    slow = speak((1, 2, 3), Voice("rh-bdl", rate=130))
-    fast = speak((1, 2, 3), Voice("rh-bdl", rate=260))
-    paused = speak((1, 2, 3), Voice("rh-bdl", rate=130, wordgap=15))
+    slow = speak((1, 2, 3), Voice(train_voice, rate=130))
+    fast = speak((1, 2, 3), Voice(train_voice, rate=260))
+    paused = speak((1, 2, 3), Voice(train_voice, rate=130, wordgap=15))
     assert slow.dtype == np.float32 and 0.5 * ESPEAK_SAMPLE_RATE < len(fast) < 0.8 * len(slow) < 0.8 * len(paused)
-    assert "rhvoice" in available_engines() and engine_voices("rhvoice") == RHVOICE_HELDOUT_VOICES
-    normal, rate = speak_with("rhvoice", (1, 2, 3), "rh-slt")
+    heldout = {"pico": PICO_HELDOUT_VOICES, "rhvoice": RHVOICE_HELDOUT_VOICES}[engine]
+    assert engine in available_engines() and engine_voices(engine) == heldout and heldout_voice in heldout
+    normal, rate = speak_with(engine, (1, 2, 3), heldout_voice)
     assert rate == ESPEAK_SAMPLE_RATE and np.abs(normal).max() > 0.05
-    with pytest.raises(ValueError, match="unknown rhvoice voice 'rh-alan'"):
-        speak_text("rhvoice", "two", "rh-alan")  # a training voice is never an evaluation voice
+    with pytest.raises(ValueError, match=f"unknown {engine} voice '{train_voice}'"):
+        speak_text(engine, "two", train_voice)  # a training voice is never an evaluation voice
 
 
 @pytest.mark.skipif(shutil.which("text2wave") is None, reason="needs Debian's festival and its festvox voices")

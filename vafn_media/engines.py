@@ -56,7 +56,7 @@ def available_engines() -> list[str]:
     """Names of the evaluation engines installed on this machine: ``"flite"``, ``"festival"``; ``"mbrola"``, ``"pico"``
     and ``"rhvoice"`` (their held-out voices); ``"recorded"`` (a person's recorded words)."""
     engines = ["flite"] if shutil.which("flite") else []
-    if shutil.which("text2wave") and all(_festival_voice_dir(voice) for voice in FESTIVAL_VOICES):
+    if shutil.which("text2wave") and all(_festival_has(voice) for voice in FESTIVAL_VOICES):
         engines.append("festival")
     mbrola_voices = [MBROLA_DIR / voice.removeprefix("mb-") for voice in engine_voices("mbrola")]
     if shutil.which("espeak-ng") and all(path.is_dir() for path in mbrola_voices):
@@ -92,10 +92,9 @@ def flite_speak(text: str, voice: str = "slt", stretch: float = 1.0) -> tuple[np
     return waveform, int(rate)
 
 
-def _festival_voice_dir(voice: str) -> Path | None:
-    """Where Festival's voice ``voice`` is installed (None when it is not)."""
-    found = sorted(Path("/usr/share/festival/voices").glob(f"*/{voice}"))
-    return found[0] if found else None
+def _festival_has(voice: str) -> bool:
+    """Whether Festival's voice ``voice`` is installed (in /usr/share/festival/voices/<language>/)."""
+    return any(Path("/usr/share/festival/voices").glob(f"*/{voice}"))
 
 
 def festival_speak(text: str, voice: str = "rab_diphone", stretch: float = 1.0) -> tuple[np.ndarray, int]:
