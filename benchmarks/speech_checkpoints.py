@@ -22,8 +22,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-#: Seed of the selection items (the robustness table uses its own).
-SELECTION_SEED = 12345
+from vafn_media.evaluation import SELECTION_SEED  # noqa: E402
 
 
 def parse_args() -> argparse.Namespace:

@@ -18,7 +18,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-SELECTION_SEED = 12345  # the items of benchmarks/speech_checkpoints.py
+from vafn_media.evaluation import SELECTION_SEED  # noqa: E402  (the items of benchmarks/speech_checkpoints.py)
 
 
 def main() -> None:

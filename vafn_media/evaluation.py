@@ -32,6 +32,10 @@ PAPER_ACCURACY: dict[str, tuple[float, float, float]] = {
 #: The paper's per-instruction latency range (seconds) for audio and audio-visual input.
 PAPER_LATENCY_S: dict[str, str] = {"Audio": "0.008-0.025", "Audio-Visual": "0.389-0.571"}
 
+#: Seed of the items that choose between audio checkpoints (`benchmarks/speech_checkpoints.py`) and check the
+#: reader's test-time corrections (`benchmarks/speech_corrections.py`); the robustness table uses its own.
+SELECTION_SEED: int = 12345
+
 
 @dataclass
 class CellResult:
