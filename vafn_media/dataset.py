@@ -87,15 +87,15 @@ def item_spec(seed: int, split: str, index: int, difficulty: str | None = None, 
     def stream(purpose: int) -> np.random.Generator:  # draws that leave the item's main stream untouched
         return np.random.default_rng([seed, SPLIT_CODES[split], difficulty_code, index, purpose])
 
-    if mbrola > 0 or pico > 0 or rhvoice > 0:
+    synthesisers = ((mbrola, mbrola_voice), (pico, pico_voice), (rhvoice, rhvoice_voice))  # in this order
+    if any(share > 0 for share, _ in synthesisers):
         choice = stream(3)
-        draw = choice.random()
-        if draw < mbrola:
-            voice = mbrola_voice(choice, heldout, voice)
-        elif draw < mbrola + pico:
-            voice = pico_voice(choice, heldout, voice)
-        elif draw < mbrola + pico + rhvoice:
-            voice = rhvoice_voice(choice, heldout, voice)
+        draw, bound = choice.random(), 0.0
+        for share, other_voice in synthesisers:
+            bound += share
+            if draw < bound:
+                voice = other_voice(choice, heldout, voice)
+                break
     template, empty_phrase = int(rng.integers(len(TEMPLATES))), int(rng.integers(len(EMPTY_PHRASES)))
     joins = None
     if splice > 0:
