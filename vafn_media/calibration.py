@@ -6,7 +6,8 @@ every benchmark condition (the speech channel conditions clean, 8 kHz, reverb, 1
 Table 1's noisy audio with a Cutout card), with their own seed.
 
 Run by the training command after training; also usable on an existing checkpoint:
-``python -m vafn_media.calibration [--checkpoint PATH]`` (updates the checkpoint's JSON metadata).
+``python -m vafn_media.calibration [--checkpoint PATH]`` (rebuilds the validation split its training used from the
+arguments in its JSON metadata, and updates that metadata).
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ from vafn_media.constants import MODALITIES
 
 #: Candidate reliability weights of the image relative to audio (1.0 = equal trust).
 IMAGE_WEIGHT_GRID: tuple[float, ...] = (0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.2, 1.5, 2.0)
-#: Seed and size of the cached calibration split (in-distribution "test" split: training voices and glyph sets).
+#: Seed and size of the cached calibration split (in-distribution "test" split: training voices and glyph sets) of a
+#: checkpoint whose metadata records no training arguments.
 CALIBRATION_SEED: int = 0
 CALIBRATION_ITEMS: int = 500
 #: Seed and size of each benchmark-condition calibration set (training voices; the benchmarks use other seeds).
@@ -180,6 +182,22 @@ def calibrate_generator(generator, data) -> dict:
     return calibrate_fusion(cached_sets(generator.model, data) + condition_sets(generator))
 
 
+def training_validation_split(metadata: dict, cache_dir: Path):
+    """The cached validation items a checkpoint's training command calibrated on, rebuilt from the arguments in its
+    metadata (seed, size and synthesiser shares); the default split (CALIBRATION_SEED) when it records none.
+
+    :param metadata: the checkpoint's JSON metadata.
+    :param cache_dir: where shards are cached.
+    """
+    from vafn_media.dataset import build_cache
+
+    args = metadata.get("args", {})
+    if "seed" not in args:
+        return build_cache(CALIBRATION_SEED, "test", CALIBRATION_ITEMS, cache_dir)
+    shares = {name: args.get(f"{name}_probability", 0.0) for name in ("mbrola", "pico", "rhvoice", "tempo")}
+    return build_cache(args["seed"], "test", args.get("val_items", CALIBRATION_ITEMS), cache_dir, **shares)
+
+
 def main(argv=None) -> dict:
     """Calibrate an existing checkpoint and write the weights into its JSON metadata."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -188,16 +206,15 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     import torch
 
-    from vafn_media.dataset import DEFAULT_CACHE, build_cache
+    from vafn_media.dataset import DEFAULT_CACHE
     from vafn_media.generator import DEFAULT_CHECKPOINT, InstructionGenerator
 
     torch.set_num_threads(1)
     path = args.checkpoint or DEFAULT_CHECKPOINT
     generator = InstructionGenerator.load(path, warm=False)
-    data = build_cache(CALIBRATION_SEED, "test", CALIBRATION_ITEMS, args.cache_dir or DEFAULT_CACHE)
-    result = calibrate_generator(generator, data)
     meta_path = Path(path).with_suffix(".json")
     metadata = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+    result = calibrate_generator(generator, training_validation_split(metadata, args.cache_dir or DEFAULT_CACHE))
     metadata.update(result)
     meta_path.write_text(json.dumps(metadata, indent=2))
     print(json.dumps(result))

@@ -34,6 +34,13 @@ LOG_EPS: float = 1e-6
 #: (room reverberation, a recording's lead-in, word tails) reached the features: read at a quiet training level, a
 #: reverberant or time-compressed recorded voice lost far fewer words. About a quarter of training clips are quieter.
 READ_PEAK: float = 0.045
+#: The reader takes each mel band's stationary noise floor away before the log (spectral subtraction with
+#: over-subtraction and a spectral floor): the floor is the band's power at this quantile of the clip's frames (its
+#: silences), subtracted this many times, and no band falls below this share of its own power. White noise at 10 dB
+#: buried the pauses between a person's words; on clean audio the quiet frames are silence and nothing changes.
+NOISE_FLOOR_QUANTILE: float = 0.1
+NOISE_OVER_SUBTRACTION: float = 2.0
+NOISE_SPECTRAL_FLOOR: float = 0.05
 #: Longest accepted utterance (seconds); longer audio is rejected rather than silently truncated.
 MAX_AUDIO_SECONDS: float = 20.0
 #: Peak-normalised RMS (dBFS) below which a clip counts as silent.

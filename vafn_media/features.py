@@ -18,6 +18,9 @@ from vafn_media.constants import (
     LOG_EPS,
     LOW_CUT_HZ,
     N_MELS,
+    NOISE_FLOOR_QUANTILE,
+    NOISE_OVER_SUBTRACTION,
+    NOISE_SPECTRAL_FLOOR,
     READ_PEAK,
     SAMPLE_RATE,
     WIN_SECONDS,
@@ -106,8 +109,23 @@ def num_frames(num_samples: int, sample_rate: int) -> int:
     return num_samples // hop + 1
 
 
-def _log_mel_power(waveforms: torch.Tensor, sample_rate: int) -> torch.Tensor:
-    """Log mel power (B, N_MELS, T) of a (B, N) batch, centred frames, before normalisation."""
+def subtract_noise_floor(power: torch.Tensor) -> torch.Tensor:
+    """Mel power (B, N_MELS, T) less each band's stationary noise floor (see
+    :data:`vafn_media.constants.NOISE_FLOOR_QUANTILE`): ``max(power - a * floor, b * power)``.
+
+    :param power: mel power of whole clips (every frame valid).
+    """
+    import torch
+
+    values = power.numpy()
+    rank = max(1, int(NOISE_FLOOR_QUANTILE * values.shape[-1]))
+    floor = np.partition(values, rank - 1, axis=-1)[..., rank - 1:rank]  # numpy: a third of torch.kthvalue's time
+    return torch.from_numpy(np.maximum(values - NOISE_OVER_SUBTRACTION * floor, NOISE_SPECTRAL_FLOOR * values))
+
+
+def _log_mel_power(waveforms: torch.Tensor, sample_rate: int, denoise: bool = False) -> torch.Tensor:
+    """Log mel power (B, N_MELS, T) of a (B, N) batch, centred frames, before normalisation (``denoise``: with
+    :func:`subtract_noise_floor`)."""
     import torch
 
     n_fft, win, hop = frame_params(sample_rate)
@@ -117,7 +135,10 @@ def _log_mel_power(waveforms: torch.Tensor, sample_rate: int) -> torch.Tensor:
     # numpy squares the interleaved real and imaginary parts in about half torch's time (the same float32 numbers)
     parts = torch.view_as_real(spec).numpy()
     power = torch.from_numpy(np.square(parts[..., 0]) + np.square(parts[..., 1]))
-    return torch.matmul(mel, power).add_(LOG_EPS).log_()
+    mel_power = torch.matmul(mel, power)
+    if denoise:
+        mel_power = subtract_noise_floor(mel_power)
+    return mel_power.add_(LOG_EPS).log_()
 
 
 def log_mel_batch(
@@ -143,19 +164,20 @@ def log_mel_batch(
     return normalised, frames
 
 
-def log_mel(waveform: np.ndarray, sample_rate: int) -> torch.Tensor:
+def log_mel(waveform: np.ndarray, sample_rate: int, denoise: bool = False) -> torch.Tensor:
     """Normalised log-mel features (1, N_MELS, T) of one mono clip.
 
-    The same numbers as :func:`log_mel_batch` on a batch of this one clip (bit for bit: a clip alone has no padded
-    frames, so the batch's frame mask is all ones and is skipped here, as are its allocations).
+    Without ``denoise``, the same numbers as :func:`log_mel_batch` on a batch of this one clip (bit for bit: a clip
+    alone has no padded frames, so the batch's frame mask is all ones and is skipped here, as are its allocations).
 
     :param waveform: float32 samples.
     :param sample_rate: sample rate in Hz.
+    :param denoise: take each band's noise floor away first (:func:`subtract_noise_floor`).
     """
     import torch
 
     tensor = torch.from_numpy(np.ascontiguousarray(waveform, dtype=np.float32))[None]
-    features = _log_mel_power(tensor, sample_rate)
+    features = _log_mel_power(tensor, sample_rate, denoise)
     count = torch.full((1, 1, 1), features.shape[-1], dtype=features.dtype)  # centred frames: every one is valid
     mean = features.sum(-1, keepdim=True) / count
     centered = features - mean
@@ -165,11 +187,11 @@ def log_mel(waveform: np.ndarray, sample_rate: int) -> torch.Tensor:
 
 def audio_features(waveform: np.ndarray) -> torch.Tensor:
     """What the reader reads of a clip at SAMPLE_RATE: :func:`low_cut`, scaled by :func:`at_peak`, then
-    :func:`log_mel` (1, N_MELS, T).
+    :func:`log_mel` with :func:`subtract_noise_floor` (1, N_MELS, T).
 
-    Training features skip both (:mod:`vafn_media.dataset`): they correct, at test time, a reader trained without
+    Training features skip all three (:mod:`vafn_media.dataset`): they correct, at test time, a reader trained without
     them; an audio path fine-tuned on cut features read a person's voice and SVOX Pico worse (docs/multimedia.md).
 
     :param waveform: float32 samples at SAMPLE_RATE.
     """
-    return log_mel(at_peak(low_cut(waveform, SAMPLE_RATE)), SAMPLE_RATE)
+    return log_mel(at_peak(low_cut(waveform, SAMPLE_RATE)), SAMPLE_RATE, denoise=True)
