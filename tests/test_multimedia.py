@@ -892,10 +892,10 @@ def test_recorded_voice_says_only_its_words_and_is_an_evaluation_engine():
 @needs_recordings
 def test_reader_reads_a_person_in_noise_reverb_and_trimmed_at_the_words(generator):
     """A person's recorded words (fixed seeds): clean and in a reverberant room read right; in 10 dB noise and
-    time-compressed right or flagged, at most 2 of 6 wrong (the robustness table reads 96.0 / 90.3 % of 300 such clips
-    right, 1.3 / 3.3 % wrong without a flag); trimmed at the words read right. Whether the test-time corrections (the added
-    silence at a sounding end among them) still help this audio path is a benchmark question, not a six-clip one
-    (benchmarks/speech_corrections.py, docs/multimedia.md, *Results*)."""
+    time-compressed right or flagged, at most 2 of 6 wrong (the robustness table reads 96.0 / 90.3 % of 300 such
+    clips right, 1.3 / 3.3 % wrong without a flag); trimmed at the words read right. Whether the test-time corrections
+    (the added silence at a sounding end among them) still help this audio path is a benchmark question, not a
+    six-clip one (benchmarks/speech_corrections.py, docs/multimedia.md, *Results*)."""
     from vafn_media.augment import apply_condition
     from vafn_media.engines import speak_with
     from vafn_media.speech import trim_silence
