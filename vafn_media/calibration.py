@@ -189,13 +189,12 @@ def training_validation_split(metadata: dict, cache_dir: Path):
     :param metadata: the checkpoint's JSON metadata.
     :param cache_dir: where shards are cached.
     """
-    from vafn_media.dataset import build_cache
+    from vafn_media.dataset import build_cache, data_shares
 
     args = metadata.get("args", {})
     if "seed" not in args:
         return build_cache(CALIBRATION_SEED, "test", CALIBRATION_ITEMS, cache_dir)
-    shares = {name: args.get(f"{name}_probability", 0.0) for name in ("mbrola", "pico", "rhvoice", "tempo")}
-    return build_cache(args["seed"], "test", args.get("val_items", CALIBRATION_ITEMS), cache_dir, **shares)
+    return build_cache(args["seed"], "test", args.get("val_items", CALIBRATION_ITEMS), cache_dir, **data_shares(args))
 
 
 def main(argv=None) -> dict:

@@ -316,6 +316,16 @@ def source_digest(*names: str) -> str:
     return digest.hexdigest()[:10]
 
 
+def data_shares(args: dict[str, Any]) -> dict[str, float]:
+    """The :func:`build_cache` shares (``mbrola``, ``pico``, ``rhvoice``, ``tempo``) of a training command's arguments
+    (``vars`` of its namespace, as a checkpoint's metadata stores them; a missing option is 0), so that a checkpoint's
+    validation split can be rebuilt exactly as its training built it.
+
+    :param args: the training command's arguments by name (``mbrola_probability``, ...).
+    """
+    return {name: args.get(f"{name}_probability", 0.0) for name in ("mbrola", "pico", "rhvoice", "tempo")}
+
+
 def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CACHE, workers: int = 2,
                 progress: bool = True, mbrola: float = 0.0, splice: float = 0.0, pico: float = 0.0,
                 tempo: float = 0.0, rhvoice: float = 0.0) -> TrainingData:

@@ -205,7 +205,7 @@ def main(argv=None) -> dict:
 
     from vafn_media.batching import bucketed_batches, make_batch
     from vafn_media.calibration import calibrate_generator
-    from vafn_media.dataset import DEFAULT_CACHE, build_cache
+    from vafn_media.dataset import DEFAULT_CACHE, build_cache, data_shares
     from vafn_media.generator import InstructionGenerator
     from vafn_media.model import InstructionModel, ModelConfig
 
@@ -220,11 +220,10 @@ def main(argv=None) -> dict:
             raise SystemExit(f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(args, name)}")
     if args.mbrola_probability + args.pico_probability + args.rhvoice_probability > 1:
         raise SystemExit("--mbrola-probability + --pico-probability + --rhvoice-probability must not exceed 1")
-    voices = {"mbrola": args.mbrola_probability, "pico": args.pico_probability, "rhvoice": args.rhvoice_probability}
+    shares = data_shares(vars(args))
     train = build_cache(args.seed, "train", args.train_items, cache, args.workers, splice=args.splice_probability,
-                        tempo=args.tempo_probability, **voices)
-    validation = {split: build_cache(args.seed, split, args.val_items, cache, args.workers,
-                                     tempo=args.tempo_probability, **voices)
+                        **shares)
+    validation = {split: build_cache(args.seed, split, args.val_items, cache, args.workers, **shares)
                   for split in ("test", "heldout")}
     camera = None
     if args.camera_probability > 0:
