@@ -37,7 +37,8 @@ def main() -> None:
     """Read every engine's items with the corrections on and without each of them in turn."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--items", type=int, default=200, help="instructions per engine (lengths 1-10)")
-    parser.add_argument("--engines", default="recorded,flite,festival,pico,rhvoice,espeak", help="comma-separated")
+    parser.add_argument("--engines", default="recorded,flite,festival,pico,piper,rhvoice,espeak",
+                        help="comma-separated")
     parser.add_argument("--checkpoint", default=None, help="a .pt file with its .json beside it (default: packaged)")
     parser.add_argument("--out", type=Path, default=None, help="also write the markdown table here")
     args = parser.parse_args()

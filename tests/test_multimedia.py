@@ -822,10 +822,11 @@ def test_recalibration_uses_the_validation_split_of_the_checkpoints_training(mon
     calls = []
     monkeypatch.setattr(dataset, "build_cache", lambda *args, **kwargs: calls.append((args, kwargs)))
     recorded = {"seed": 4, "val_items": 500, "mbrola_probability": 0.3, "tempo_probability": 0.3,
-                "rhvoice_probability": 0.25, "splice_probability": 0.5}
+                "rhvoice_probability": 0.25, "dectalk_probability": 0.2, "splice_probability": 0.5}
     calibration.training_validation_split({"args": recorded}, tmp_path)
     calibration.training_validation_split({}, tmp_path)
-    assert calls == [((4, "test", 500, tmp_path), {"mbrola": 0.3, "pico": 0.0, "rhvoice": 0.25, "tempo": 0.3}),
+    assert calls == [((4, "test", 500, tmp_path),
+                      {"mbrola": 0.3, "pico": 0.0, "rhvoice": 0.25, "dectalk": 0.2, "tempo": 0.3}),
                      ((calibration.CALIBRATION_SEED, "test", calibration.CALIBRATION_ITEMS, tmp_path), {})]
 
 
