@@ -149,45 +149,34 @@ def test_pico_share_follows_mbrola_on_its_stream_and_keeps_its_pools_apart():
         item_spec(0, "train", 0, mbrola=0.7, pico=0.4)
 
 
-def test_rhvoice_share_follows_pico_on_its_stream_and_keeps_its_pools_apart():
-    from vafn_media.dataset import cache_key, item_spec
-    from vafn_media.speech import RHVOICE_HELDOUT_VOICES, RHVOICE_TRAIN_VOICES
-
-    assert not set(RHVOICE_TRAIN_VOICES) & set(RHVOICE_HELDOUT_VOICES)
-    before = [item_spec(0, "train", i, mbrola=0.3, pico=0.1) for i in range(300)]
-    assert before == [item_spec(0, "train", i, mbrola=0.3, pico=0.1, rhvoice=0.0) for i in range(300)]
-    after = [item_spec(0, "train", i, mbrola=0.3, pico=0.1, rhvoice=0.25) for i in range(300)]
-    assert [(s.arms, s.template) for s in before] == [(s.arms, s.template) for s in after]
-    changed = [(a, b) for a, b in zip(before, after) if a != b]
-    assert 45 <= len(changed) <= 105  # about 25 %, taken from espeak's share only: MBROLA and Pico items stay
-    assert all(a.voice.name[:3] not in ("mb-", "pic") and b.voice.name in RHVOICE_TRAIN_VOICES
-               and b.voice.rate == a.voice.rate for a, b in changed)
-    heldout = {item_spec(0, "heldout", i, rhvoice=0.5).voice.name for i in range(100)}
-    assert set(RHVOICE_HELDOUT_VOICES) <= heldout and not heldout & set(RHVOICE_TRAIN_VOICES)
-    assert cache_key(0, "train", 10) != cache_key(0, "train", 10, rhvoice=0.25)
-    with pytest.raises(ValueError, match="sum to at most 1"):
-        item_spec(0, "train", 0, mbrola=0.5, pico=0.2, rhvoice=0.4)
-
-
-def test_dectalk_share_follows_rhvoice_on_its_stream_and_keeps_its_pools_apart():
+@pytest.mark.parametrize("share, earlier, low, high", [
+    ("rhvoice", {"mbrola": 0.3, "pico": 0.1}, 45, 105),  # about 25 % of 300 items
+    ("dectalk", {"mbrola": 0.3, "rhvoice": 0.4}, 35, 85),  # about 20 %
+])
+def test_synthesiser_share_follows_the_earlier_ones_on_its_stream_and_keeps_its_pools_apart(share, earlier, low, high):
+    import vafn_media.speech as speech
     from vafn_media.dataset import cache_key, data_shares, item_spec
-    from vafn_media.speech import DECTALK_HELDOUT_VOICES, DECTALK_TRAIN_VOICES
 
-    assert not set(DECTALK_TRAIN_VOICES) & set(DECTALK_HELDOUT_VOICES)
-    before = [item_spec(0, "train", i, mbrola=0.3, rhvoice=0.4) for i in range(300)]
-    assert before == [item_spec(0, "train", i, mbrola=0.3, rhvoice=0.4, dectalk=0.0) for i in range(300)]
-    after = [item_spec(0, "train", i, mbrola=0.3, rhvoice=0.4, dectalk=0.2) for i in range(300)]
+    train_pool = getattr(speech, f"{share.upper()}_TRAIN_VOICES")
+    heldout_pool = getattr(speech, f"{share.upper()}_HELDOUT_VOICES")
+    value = {"rhvoice": 0.25, "dectalk": 0.2}[share]
+    assert not set(train_pool) & set(heldout_pool)
+    before = [item_spec(0, "train", i, **earlier) for i in range(300)]
+    assert before == [item_spec(0, "train", i, **earlier, **{share: 0.0}) for i in range(300)]
+    after = [item_spec(0, "train", i, **earlier, **{share: value}) for i in range(300)]
     assert [(s.arms, s.template) for s in before] == [(s.arms, s.template) for s in after]
     changed = [(a, b) for a, b in zip(before, after) if a != b]
-    assert 35 <= len(changed) <= 85  # about 20 %, taken from espeak's share only: MBROLA and RHVoice items stay
-    assert all(a.voice.name[:3] not in ("mb-", "rh-") and b.voice.name in DECTALK_TRAIN_VOICES
+    assert low <= len(changed) <= high
+    earlier_prefixes = {"mbrola": "mb-", "pico": "pic", "rhvoice": "rh-"}
+    # taken from espeak's share only: the earlier synthesisers' items stay as they were
+    assert all(a.voice.name[:3] not in [earlier_prefixes[name] for name in earlier] and b.voice.name in train_pool
                and b.voice.rate == a.voice.rate for a, b in changed)
-    heldout = {item_spec(0, "heldout", i, dectalk=0.5).voice.name for i in range(100)}
-    assert set(DECTALK_HELDOUT_VOICES) <= heldout and not heldout & set(DECTALK_TRAIN_VOICES)
-    assert cache_key(0, "train", 10, rhvoice=0.4) != cache_key(0, "train", 10, rhvoice=0.4, dectalk=0.2)
-    assert data_shares({"dectalk_probability": 0.2})["dectalk"] == 0.2
+    heldout = {item_spec(0, "heldout", i, **{share: 0.5}).voice.name for i in range(100)}
+    assert set(heldout_pool) <= heldout and not heldout & set(train_pool)
+    assert cache_key(0, "train", 10, **earlier) != cache_key(0, "train", 10, **earlier, **{share: value})
+    assert data_shares({f"{share}_probability": value})[share] == value
     with pytest.raises(ValueError, match="sum to at most 1"):
-        item_spec(0, "train", 0, mbrola=0.3, rhvoice=0.4, dectalk=0.4)
+        item_spec(0, "train", 0, **earlier, **{share: 0.7})
 
 
 @pytest.mark.parametrize("voice, install", [("pico-en-US", "apt-get install libttspico-utils"),
