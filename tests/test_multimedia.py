@@ -793,6 +793,13 @@ def test_robustness_header_says_which_engines_the_checkpoint_trained_on(load_ben
     assert "held out" in trained and "30% of utterances" in trained
 
 
+def test_robustness_section_reads_only_the_engines_it_is_given(generator, load_benchmark):
+    module = load_benchmark("instruction_table")
+    lines, rows = module.robust_section(generator, 2, engines=["espeak"])
+    assert {row[0] for row in rows[1:]} == {"espeak"} and len(rows) == 1 + 5 and all(row[-1] == 2 for row in rows[1:])
+    assert sum(line.startswith("| espeak |") for line in lines) == 6  # five conditions and their degraded mean
+
+
 def test_low_cut_removes_rumble_and_keeps_the_speech_band():
     from vafn_media.features import low_cut
 
