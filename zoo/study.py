@@ -133,7 +133,7 @@ class Budget:
 BUDGETS: dict[str, Budget] = {
     "smoke": Budget("smoke", (0,), 300, 1, 1, (0, 1), 40, pretrained=True, fig4_steps=200,
                     table1_args=("--seeds", "1", "--items", "2", "--in-distribution", "0", "--transfer-items", "0",
-                                 "--workers", "1")),
+                                 "--workers", "1", "--robust-items", "5", "--camera-items", "5")),
     "quick": Budget("quick", (0,), 3000, 2, 5, (0, 1, 10), 200, pretrained=True,
                     table1_args=("--seeds", "1", "--items", "20", "--in-distribution", "0", "--transfer-items", "0")),
     "full": Budget("full", (0, 1, 2, 3, 4), 50_000, 2, 15, (0, 1, 2, 5, 10, 20, 50), 400),
