@@ -149,17 +149,17 @@ def test_pico_share_follows_mbrola_on_its_stream_and_keeps_its_pools_apart():
         item_spec(0, "train", 0, mbrola=0.7, pico=0.4)
 
 
-@pytest.mark.parametrize("share, earlier, low, high", [
-    ("rhvoice", {"mbrola": 0.3, "pico": 0.1}, 45, 105),  # about 25 % of 300 items
-    ("dectalk", {"mbrola": 0.3, "rhvoice": 0.4}, 35, 85),  # about 20 %
+@pytest.mark.parametrize("share, value, earlier, low, high", [
+    ("rhvoice", 0.25, {"mbrola": 0.3, "pico": 0.1}, 45, 105),  # about 25 % of 300 items
+    ("dectalk", 0.2, {"mbrola": 0.3, "rhvoice": 0.4}, 35, 85),  # about 20 %
 ])
-def test_synthesiser_share_follows_the_earlier_ones_on_its_stream_and_keeps_its_pools_apart(share, earlier, low, high):
+def test_synthesiser_share_follows_the_earlier_ones_on_its_stream_and_keeps_its_pools_apart(share, value, earlier, low,
+                                                                                             high):
     import vafn_media.speech as speech
     from vafn_media.dataset import cache_key, data_shares, item_spec
 
     train_pool = getattr(speech, f"{share.upper()}_TRAIN_VOICES")
     heldout_pool = getattr(speech, f"{share.upper()}_HELDOUT_VOICES")
-    value = {"rhvoice": 0.25, "dectalk": 0.2}[share]
     assert not set(train_pool) & set(heldout_pool)
     before = [item_spec(0, "train", i, **earlier) for i in range(300)]
     assert before == [item_spec(0, "train", i, **earlier, **{share: 0.0}) for i in range(300)]
@@ -191,6 +191,16 @@ def test_synthesiser_voice_without_its_program_names_the_package(monkeypatch, vo
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *args: None)
     with pytest.raises(RuntimeError, match=install):
         speech.speak((2, 3), speech.Voice(voice))
+
+
+def test_training_command_rejects_shares_that_cannot_be_drawn():
+    from vafn_media.train import main
+
+    with pytest.raises(SystemExit, match=r"^--dectalk-probability must be in \[0, 1\], got 1.5$"):
+        main(["--dectalk-probability", "1.5"])
+    with pytest.raises(SystemExit, match=r"^--mbrola-probability \+ --pico-probability \+ --rhvoice-probability \+ "
+                                         r"--dectalk-probability must not exceed 1$"):
+        main(["--rhvoice-probability", "0.6", "--dectalk-probability", "0.5"])
 
 
 def _installed(program: str) -> bool:

@@ -321,6 +321,11 @@ def source_digest(*names: str) -> str:
     return digest.hexdigest()[:10]
 
 
+#: The synthesisers besides espeak-ng's own voices whose shares :func:`item_spec` draws, in its order, on one stream
+#: (their shares sum to at most 1).
+SYNTHESISERS: tuple[str, ...] = ("mbrola", "pico", "rhvoice", "dectalk")
+
+
 def data_shares(args: dict[str, Any]) -> dict[str, float]:
     """The :func:`build_cache` shares (``mbrola``, ``pico``, ``rhvoice``, ``dectalk``, ``tempo``) of a training
     command's arguments (``vars`` of its namespace, as a checkpoint's metadata stores them; a missing option is 0), so
@@ -328,7 +333,7 @@ def data_shares(args: dict[str, Any]) -> dict[str, float]:
 
     :param args: the training command's arguments by name (``mbrola_probability``, ...).
     """
-    return {name: args.get(f"{name}_probability", 0.0) for name in ("mbrola", "pico", "rhvoice", "dectalk", "tempo")}
+    return {name: args.get(f"{name}_probability", 0.0) for name in (*SYNTHESISERS, "tempo")}
 
 
 def build_cache(seed: int, split: str, count: int, cache_dir: Path = DEFAULT_CACHE, workers: int = 2,

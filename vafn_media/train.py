@@ -209,7 +209,7 @@ def main(argv=None) -> dict:
 
     from vafn_media.batching import bucketed_batches, make_batch
     from vafn_media.calibration import calibrate_generator
-    from vafn_media.dataset import DEFAULT_CACHE, build_cache, data_shares
+    from vafn_media.dataset import DEFAULT_CACHE, SYNTHESISERS, build_cache, data_shares
     from vafn_media.generator import InstructionGenerator
     from vafn_media.model import InstructionModel, ModelConfig
 
@@ -218,13 +218,12 @@ def main(argv=None) -> dict:
     rng = np.random.default_rng(args.seed)
     started = time.time()
     cache = args.cache_dir or DEFAULT_CACHE
-    for name in ("mbrola_probability", "pico_probability", "rhvoice_probability", "dectalk_probability",
-                 "splice_probability", "tempo_probability"):
-        if not 0 <= getattr(args, name) <= 1:
-            raise SystemExit(f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(args, name)}")
-    if args.mbrola_probability + args.pico_probability + args.rhvoice_probability + args.dectalk_probability > 1:
-        raise SystemExit("--mbrola-probability + --pico-probability + --rhvoice-probability + --dectalk-probability "
-                         "must not exceed 1")
+    for name in (*SYNTHESISERS, "splice", "tempo"):
+        share = getattr(args, f"{name}_probability")
+        if not 0 <= share <= 1:
+            raise SystemExit(f"--{name}-probability must be in [0, 1], got {share}")
+    if sum(getattr(args, f"{name}_probability") for name in SYNTHESISERS) > 1:
+        raise SystemExit(" + ".join(f"--{name}-probability" for name in SYNTHESISERS) + " must not exceed 1")
     shares = data_shares(vars(args))
     train = build_cache(args.seed, "train", args.train_items, cache, args.workers, splice=args.splice_probability,
                         **shares)
