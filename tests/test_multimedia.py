@@ -201,6 +201,8 @@ def test_training_command_rejects_shares_that_cannot_be_drawn():
     with pytest.raises(SystemExit, match=r"^--mbrola-probability \+ --pico-probability \+ --rhvoice-probability \+ "
                                          r"--dectalk-probability must not exceed 1$"):
         main(["--rhvoice-probability", "0.6", "--dectalk-probability", "0.5"])
+    with pytest.raises(SystemExit, match=r"^--camera-compound-probability must be in \[0, 1\], got -0.1$"):
+        main(["--camera-compound-probability", "-0.1"])
 
 
 def _installed(program: str) -> bool:

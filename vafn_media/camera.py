@@ -57,6 +57,9 @@ MOTION_LENGTH_RANGE: tuple[int, int] = (3, 11)
 JPEG_QUALITY_RANGE: tuple[int, int] = (10, 90)
 NOISE_SIGMA_RANGE: tuple[float, float] = (0.0, 8.0)
 P_WARP, P_LIGHT, P_BLUR, P_MOTION, P_JPEG = 0.7, 0.7, 0.6, 0.35, 0.6
+#: Default chance that a training photo gets every corruption of the chain at once (still at random severities): with
+#: independent draws only 6 % of photos (P_WARP * P_LIGHT * P_BLUR * P_MOTION * P_JPEG) are that compound.
+COMPOUND_PROBABILITY: float = 0.0
 #: Evaluation conditions (fixed settings; "all" is the whole phone chain at those settings).
 CAMERA_CONDITIONS: tuple[str, ...] = ("flat", "perspective", "uneven light", "tinted paper + coloured ink", "blur",
                                       "JPEG", "all")
@@ -296,23 +299,28 @@ def sensor_noise(image: np.ndarray, rng: np.random.Generator, sigma: float) -> n
     return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
 
 
-def camera_augment(ink: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def camera_augment(ink: np.ndarray, rng: np.random.Generator,
+                   compound_probability: float = COMPOUND_PROBABILITY) -> np.ndarray:
     """The random training chain: tinted paper and coloured ink, then perspective, light, blur, noise and JPEG.
 
     :param ink: ink map from :func:`render_card_ink`.
     :param rng: random generator (one per item and copy).
+    :param compound_probability: chance that every corruption is applied (each still drawn at a random severity);
+        otherwise each is applied with its own probability (``P_WARP`` ...).
     """
     image = colour_card(ink, random_paper(rng), random_ink(rng))
-    if rng.random() < P_WARP:
+    # Every coin is drawn whatever the compound draw says, so the same rng makes the same photo but for the coins.
+    compound = rng.random() < compound_probability
+    if (rng.random() < P_WARP) or compound:
         image = perspective_warp(image, rng, rng.uniform(*WARP_RANGE))
-    if rng.random() < P_LIGHT:
+    if (rng.random() < P_LIGHT) or compound:
         image = uneven_light(image, rng, rng.uniform(*LIGHT_DEPTH_RANGE))
-    if rng.random() < P_BLUR:
+    if (rng.random() < P_BLUR) or compound:
         image = gaussian_blur(image, rng.uniform(*BLUR_SIGMA_RANGE))
-    if rng.random() < P_MOTION:
+    if (rng.random() < P_MOTION) or compound:
         image = motion_blur(image, int(rng.integers(*MOTION_LENGTH_RANGE)), rng.uniform(0.0, 180.0))
     image = sensor_noise(image, rng, rng.uniform(*NOISE_SIGMA_RANGE))
-    if rng.random() < P_JPEG:
+    if (rng.random() < P_JPEG) or compound:
         image = jpeg(image, int(rng.integers(*JPEG_QUALITY_RANGE)))
     return image
 
@@ -348,21 +356,24 @@ def apply_camera_condition(ink: np.ndarray, condition: str, rng: np.random.Gener
     return image
 
 
-def camera_cache_key(seed: int, split: str, count: int) -> str:
+def camera_cache_key(seed: int, split: str, count: int, compound_probability: float = COMPOUND_PROBABILITY) -> str:
     """Name of a cached set of image strips, with a hash of the code that renders and canonicalises them.
 
     :param seed: dataset seed.
     :param split: split name.
     :param count: number of items.
+    :param compound_probability: see :func:`camera_augment`.
     """
     from vafn_media.dataset import source_digest
 
     digest = source_digest("camera.py", "strips.py", "images.py", "corruptions.py", "constants.py")
-    return f"camera-{split}-seed{seed}-n{count}-copies{CAMERA_COPIES}-{digest}"
+    compound = f"-compound{compound_probability:g}" if compound_probability > 0 else ""
+    return f"camera-{split}-seed{seed}-n{count}-copies{CAMERA_COPIES}{compound}-{digest}"
 
 
 def build_image_cache(arms: np.ndarray, lengths: np.ndarray, seed: int, split: str, cache_dir: Path,
-                      progress: bool = True) -> dict[str, list]:
+                      progress: bool = True,
+                      compound_probability: float = COMPOUND_PROBABILITY) -> dict[str, list]:
     """Image strips of every item, rendered and canonicalised by the current code, cached in one file.
 
     Returns ``{"clean": [...], "masked": [...], "camera": [[...] per copy]}`` of uint8 canonical strips: a fresh strip
@@ -377,6 +388,7 @@ def build_image_cache(arms: np.ndarray, lengths: np.ndarray, seed: int, split: s
     :param split: split name ("train", "test", "heldout").
     :param cache_dir: where the file is stored.
     :param progress: show a tqdm progress bar.
+    :param compound_probability: see :func:`camera_augment`.
     """
     from tqdm import tqdm
 
@@ -384,7 +396,7 @@ def build_image_cache(arms: np.ndarray, lengths: np.ndarray, seed: int, split: s
     from vafn_media.dataset import SPLIT_CODES, stored_strip
     from vafn_media.strips import render_strip
 
-    path = Path(cache_dir) / (camera_cache_key(seed, split, len(lengths)) + ".npz")
+    path = Path(cache_dir) / (camera_cache_key(seed, split, len(lengths), compound_probability) + ".npz")
     names = ["clean", "masked"] + [f"camera{k}" for k in range(CAMERA_COPIES)]
     if not path.exists():
         store: dict[str, list[np.ndarray]] = {name: [] for name in names}
@@ -398,7 +410,7 @@ def build_image_cache(arms: np.ndarray, lengths: np.ndarray, seed: int, split: s
             for k in range(CAMERA_COPIES):
                 ink = render_card_ink(labels, rng, SOURCES[int(rng.choice(len(SOURCES), p=TRAIN_SOURCE_PROBABILITIES))],
                                       heldout=False)
-                store[f"camera{k}"].append(stored_strip(camera_augment(ink, rng), labels,
+                store[f"camera{k}"].append(stored_strip(camera_augment(ink, rng, compound_probability), labels,
                                                         colour_card(ink, (245, 245, 245), (20, 20, 20))))
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {}

@@ -18,6 +18,7 @@ import numpy as np
 
 from vafn_gym.files import atomic_write
 from vafn_media.augment import TEMPO_RATE_RANGE
+from vafn_media.camera import COMPOUND_PROBABILITY
 from vafn_media.constants import BLANK, MODALITIES, VTLP_PROBABILITY, VTLP_RANGE
 
 #: Default paths of the packaged checkpoint (weights + JSON metadata).
@@ -166,6 +167,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--camera-probability", type=float, default=0.5,
                         help="share of training images that are camera photos of cards (vafn_media.camera); > 0 also "
                              "re-renders every item's strips with the current image code (0: cached strips only)")
+    parser.add_argument("--camera-compound-probability", type=float, default=COMPOUND_PROBABILITY,
+                        help="chance that a training camera photo gets every corruption at once (perspective, light, "
+                             "blur, motion blur, JPEG; random severities), instead of each with its own chance")
     parser.add_argument("--vtlp-probability", type=float, default=VTLP_PROBABILITY,
                         help="share of training utterances whose formants are scaled by a random factor in "
                              f"{VTLP_RANGE} (vocal-tract-length perturbation, for voices the data has not got)")
@@ -218,10 +222,10 @@ def main(argv=None) -> dict:
     rng = np.random.default_rng(args.seed)
     started = time.time()
     cache = args.cache_dir or DEFAULT_CACHE
-    for name in (*SYNTHESISERS, "splice", "tempo"):
+    for name in (*SYNTHESISERS, "splice", "tempo", "camera", "camera_compound"):
         share = getattr(args, f"{name}_probability")
         if not 0 <= share <= 1:
-            raise SystemExit(f"--{name}-probability must be in [0, 1], got {share}")
+            raise SystemExit(f"--{name.replace('_', '-')}-probability must be in [0, 1], got {share}")
     if sum(getattr(args, f"{name}_probability") for name in SYNTHESISERS) > 1:
         raise SystemExit(" + ".join(f"--{name}-probability" for name in SYNTHESISERS) + " must not exceed 1")
     shares = data_shares(vars(args))
@@ -234,7 +238,8 @@ def main(argv=None) -> dict:
         from vafn_media.camera import build_image_cache
 
         for split, data in [("train", train), *validation.items()]:
-            strips = build_image_cache(data.arms, data.lengths, args.seed, split, cache)
+            strips = build_image_cache(data.arms, data.lengths, args.seed, split, cache,
+                                       compound_probability=args.camera_compound_probability)
             data.clean, data.masked = strips["clean"], strips["masked"]
             if split == "train":
                 camera = strips["camera"]
