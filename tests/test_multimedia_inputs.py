@@ -362,6 +362,24 @@ def test_cli_empty_code_is_the_empty_instruction():
     assert '"instruction": []' in done.stdout
 
 
+def test_camera_checkpoint_comparison(load_benchmark, tmp_path):
+    from vafn_media.camera import CAMERA_CONDITIONS
+    from vafn_media.evaluation import CAMERA_SETS
+
+    module = load_benchmark("camera_checkpoints")
+    out = tmp_path / "cards.md"
+    module.main(["--items", "2", "--out", str(out)])
+    lines = out.read_text().splitlines()
+    rows = [line for line in lines if line.startswith("| ") and not line.startswith("| Glyphs")]
+    assert len(rows) == len(CAMERA_SETS) * len(CAMERA_CONDITIONS) and all(row.count("|") == 4 for row in rows)
+    assert lines[-1].startswith("- packaged: unseen sets") and lines[-1].endswith("vs the first column +0.0")
+    first = {("unseen a", "flat"): 100.0, ("unseen a", "all"): 90.0, ("training b", "all"): 50.0}
+    second = {("unseen a", "flat"): 97.0, ("unseen a", "all"): 95.0, ("training b", "all"): 0.0}
+    lines = module.summary({"one": first, "two": second})
+    assert lines[1] == ('- two: unseen sets, mean of every cell 96.00, of the "all" cells 95.00; largest drop of an '
+                        "unseen cell vs the first column -3.0")  # the training set's drop does not count
+
+
 def test_speech_checkpoint_comparison_and_error_breakdown(generator, load_benchmark):
     from types import SimpleNamespace
 

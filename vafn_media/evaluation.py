@@ -35,6 +35,9 @@ PAPER_LATENCY_S: dict[str, str] = {"Audio": "0.008-0.025", "Audio-Visual": "0.38
 #: Seed of the items that choose between audio checkpoints (`benchmarks/speech_checkpoints.py`) and check the
 #: reader's test-time corrections (`benchmarks/speech_corrections.py`); the robustness table uses its own.
 SELECTION_SEED: int = 12345
+#: Seed of the cards that choose between image checkpoints (`benchmarks/camera_checkpoints.py`); the camera table of
+#: `benchmarks/instruction_table.py` uses its own.
+CAMERA_SELECTION_SEED: int = 777
 
 
 @dataclass
