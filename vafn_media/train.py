@@ -231,6 +231,16 @@ def main(argv=None) -> dict:
             raise SystemExit(f"--{name.replace('_', '-')}-probability must be in [0, 1], got {share}")
     if sum(getattr(args, f"{name}_probability") for name in SYNTHESISERS) > 1:
         raise SystemExit(" + ".join(f"--{name}-probability" for name in SYNTHESISERS) + " must not exceed 1")
+    for name in ("camera_compound", "camera_mnist"):
+        if getattr(args, f"{name}_probability") > 0 and args.camera_probability == 0:
+            raise SystemExit(f"--{name.replace('_', '-')}-probability needs camera photos (--camera-probability > 0)")
+    if args.camera_mnist_probability > 0:
+        from vafn_media.strips import mnist_pool
+
+        try:  # before minutes of data generation, not after
+            mnist_pool()
+        except ImportError as error:
+            raise SystemExit(str(error)) from error
     shares = data_shares(vars(args))
     train = build_cache(args.seed, "train", args.train_items, cache, args.workers, splice=args.splice_probability,
                         **shares)
