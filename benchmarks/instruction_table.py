@@ -223,6 +223,7 @@ def camera_section(generator, items_per_set: int, seed: int = EVAL_SEED_BASE + 6
     rows = [["glyphs", "condition", "exact", "digit", "flagged", "rejected", "wrong_unflagged", "right_flagged",
              "items"]]
     per_font: dict[str, dict[str, list[int]]] = {}
+    per_size: dict[tuple[str, tuple[int, int]], dict[str, list[int]]] = {}
     for glyph_set in CAMERA_SETS:
         items = camera_items(glyph_set, items_per_set, seed)
         exact = []
@@ -234,6 +235,8 @@ def camera_section(generator, items_per_set: int, seed: int = EVAL_SEED_BASE + 6
                          f"{cell['right_flagged']:.1f} |")
             rows.append([glyph_set, condition] + [f"{cell[k]:.2f}" for k in (
                 "exact", "digit", "flagged", "rejected", "wrong_unflagged", "right_flagged")] + [len(items)])
+            for size, counts in cell["per_size"].items():
+                per_size.setdefault((glyph_set, size), {})[condition] = counts
             if glyph_set.startswith("unseen"):
                 for font, (hits, count) in cell["per_font"].items():
                     per_font.setdefault(font, {})[condition] = [hits, count]
@@ -248,7 +251,19 @@ def camera_section(generator, items_per_set: int, seed: int = EVAL_SEED_BASE + 6
             f"{100.0 * cells[c][0] / max(1, cells[c][1]):.1f}" for c in CAMERA_CONDITIONS) + " |")
         for condition in CAMERA_CONDITIONS:
             hits, count = cells[condition]
-            rows.append([f"font:{font}", condition, f"{100.0 * hits / max(1, count):.2f}", "", "", "", "", count])
+            rows.append([f"font:{font}", condition, f"{100.0 * hits / max(1, count):.2f}", "", "", "", "", "", count])
+    lines += ["", "By digit size: exact % per side of a digit's cell on the card (pixels; blur and JPEG blocks are in "
+              "pixels, so they take more of a small digit), cards in brackets:", "",
+              "| Glyphs | Digit cell (px) | " + " | ".join(CAMERA_CONDITIONS) + " |",
+              "|" + "---|" * (2 + len(CAMERA_CONDITIONS))]
+    for (glyph_set, (low, high)), cells in per_size.items():
+        count = cells[CAMERA_CONDITIONS[0]][1]
+        lines.append(f"| {glyph_set} | {low}-{high} ({count}) | " + " | ".join(
+            f"{100.0 * cells[c][0] / max(1, cells[c][1]):.1f}" for c in CAMERA_CONDITIONS) + " |")
+        for condition in CAMERA_CONDITIONS:
+            hits, count = cells[condition]
+            rows.append([f"{glyph_set}:cell {low}-{high}px", condition, f"{100.0 * hits / max(1, count):.2f}", "", "",
+                         "", "", "", count])
     return lines, rows
 
 

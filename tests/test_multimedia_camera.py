@@ -257,10 +257,26 @@ def test_image_cache_and_camera_batches(tmp_path):
     assert torch.equal(plain["image_lengths"], torch.tensor([s.shape[1] for s in strips["clean"]]))
 
 
+def test_camera_items_know_their_digit_size():
+    """The evaluation draws each card's cell itself (render_card_ink's own first draw): the same cards as before, and
+    every size falls in exactly one bin of the size breakdown."""
+    from vafn_media.evaluation import CELL_SIZE_BINS, camera_items
+
+    assert CELL_SIZE_BINS[0][0] == camera.CARD_CELL_RANGE[0] and CELL_SIZE_BINS[-1][1] == camera.CARD_CELL_RANGE[1]
+    assert all(a[1] + 1 == b[0] for a, b in zip(CELL_SIZE_BINS, CELL_SIZE_BINS[1:]))
+    for item, i in zip(camera_items("unseen handwriting", 5, 3), range(5)):
+        rng = np.random.default_rng([3, 2, i])  # (seed, index of the glyph set, card), as camera_items seeds it
+        arms = tuple(int(a) for a in rng.integers(1, 4, int(rng.integers(1, 11))))
+        assert arms == item.arms and np.array_equal(item.ink, camera.render_card_ink(arms, rng, "handwritten", True))
+        assert camera.CARD_CELL_RANGE[0] <= item.cell <= camera.CARD_CELL_RANGE[1]
+
+
 # --- benchmark -----------------------------------------------------------------------------------------------------
 def test_benchmark_camera_section_runs_on_a_tiny_sample(load_benchmark):
     pytest.importorskip("torch")
     from vafn_media import InstructionGenerator
+
+    from vafn_media.evaluation import CELL_SIZE_BINS
 
     table = load_benchmark("instruction_table")
     lines, rows = table.camera_section(InstructionGenerator.load(), 2)
@@ -272,7 +288,10 @@ def test_benchmark_camera_section_runs_on_a_tiny_sample(load_benchmark):
     for row in rows[1:]:
         assert 0.0 <= float(row[2]) <= 100.0
     assert any("mean of the 6 camera conditions" in line for line in lines)
+    assert all(len(row) == len(rows[0]) for row in rows)
+    sizes = [row for row in rows if row[0].startswith("unseen handwriting:cell ") and row[1] == "all"]
+    assert len(sizes) == len(CELL_SIZE_BINS) and sum(row[-1] for row in sizes) == 2  # every card in one size bin
     for row in rows[1:]:  # every flagged card is either a right one (a cost) or a wrong one caught
-        if row[1] in camera.CAMERA_CONDITIONS and not row[0].startswith("font:"):
+        if row[1] in camera.CAMERA_CONDITIONS and ":" not in row[0]:
             exact, flagged, rejected, wrong_unflagged, right_flagged = (float(row[i]) for i in (2, 4, 5, 6, 7))
             assert flagged == pytest.approx(right_flagged + (100.0 - exact - rejected - wrong_unflagged))

@@ -134,7 +134,7 @@ def ttf_glyph(arm: int, font: str, cell: int, rng: np.random.Generator) -> np.nd
 
 
 def render_card_ink(arms: Sequence[int], rng: np.random.Generator, source: str, heldout: bool,
-                    font: str | None = None) -> np.ndarray:
+                    font: str | None = None, cell: int | None = None) -> np.ndarray:
     """The ink map of a card (float32 in [0, 1]; 1 = full ink): one row of digits with blank margins.
 
     :param arms: arm ids (0..MAX_INSTRUCTION_LENGTH).
@@ -142,6 +142,7 @@ def render_card_ink(arms: Sequence[int], rng: np.random.Generator, source: str, 
     :param source: "font" (TrueType), "hershey", "handwritten" (scikit-learn digits) or, for training only, "mnist".
     :param heldout: draw from the held-out fonts / glyphs instead of the training ones.
     :param font: for "font", this TrueType file instead of a random one from the split's list.
+    :param cell: side of one digit's cell (pixels); None draws it from CARD_CELL_RANGE (the first draw from ``rng``).
     """
     from vafn_media.strips import _handwritten_glyph, _printed_glyph
 
@@ -149,7 +150,8 @@ def render_card_ink(arms: Sequence[int], rng: np.random.Generator, source: str, 
         raise ValueError(f"unknown glyph source {source!r}; choose from {(*SOURCES, MNIST_SOURCE)}")
     if len(arms) > MAX_INSTRUCTION_LENGTH:
         raise ValueError(f"at most {MAX_INSTRUCTION_LENGTH} digits fit a card, got {len(arms)}")
-    cell = int(rng.integers(CARD_CELL_RANGE[0], CARD_CELL_RANGE[1] + 1))
+    if cell is None:
+        cell = int(rng.integers(CARD_CELL_RANGE[0], CARD_CELL_RANGE[1] + 1))
     fonts = HELDOUT_TTF_FONTS if heldout else TRAIN_TTF_FONTS
     chosen = font if font is not None else fonts[int(rng.integers(len(fonts)))]
     margins = (rng.uniform(*CARD_MARGIN_RANGE, size=4) * cell).astype(int)  # top, bottom, left, right

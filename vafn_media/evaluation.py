@@ -253,13 +253,19 @@ CAMERA_SETS: dict[str, tuple[str, bool]] = {
 }
 
 
+#: Digit sizes (the card's cell side, pixels, inclusive) the camera cells are also broken down by: thirds of
+#: ``camera.CARD_CELL_RANGE``. Blur is in pixels, so it takes more of a small digit.
+CELL_SIZE_BINS: tuple[tuple[int, int], ...] = ((40, 53), (54, 67), (68, 80))
+
+
 @dataclass
 class CardItem:
-    """One card of the camera evaluation: label, ink map, and the TrueType font (None for other sources)."""
+    """One card of the camera evaluation: label, ink map, TrueType font (None for other sources), digit cell (px)."""
 
     arms: tuple[int, ...]
     ink: np.ndarray
     font: str | None
+    cell: int
 
 
 def camera_items(glyph_set: str, count: int, seed: int) -> list[CardItem]:
@@ -269,7 +275,7 @@ def camera_items(glyph_set: str, count: int, seed: int) -> list[CardItem]:
     :param count: number of cards.
     :param seed: seed of labels and rendering.
     """
-    from vafn_media.camera import HELDOUT_TTF_FONTS, TRAIN_TTF_FONTS, render_card_ink
+    from vafn_media.camera import CARD_CELL_RANGE, HELDOUT_TTF_FONTS, TRAIN_TTF_FONTS, render_card_ink
 
     source, heldout = CAMERA_SETS[glyph_set]
     fonts = HELDOUT_TTF_FONTS if heldout else TRAIN_TTF_FONTS
@@ -279,7 +285,8 @@ def camera_items(glyph_set: str, count: int, seed: int) -> list[CardItem]:
         rng = np.random.default_rng([seed, code, i])
         arms = tuple(int(a) for a in rng.integers(1, 4, int(rng.integers(1, 11))))
         font = fonts[i % len(fonts)] if source == "font" else None
-        items.append(CardItem(arms, render_card_ink(arms, rng, source, heldout, font=font), font))
+        cell = int(rng.integers(CARD_CELL_RANGE[0], CARD_CELL_RANGE[1] + 1))  # render_card_ink's own first draw
+        items.append(CardItem(arms, render_card_ink(arms, rng, source, heldout, font=font, cell=cell), font, cell))
     return items
 
 
@@ -288,8 +295,8 @@ def camera_cell(transcribe: Callable[..., object], items: list[CardItem], condit
     """Image-only accuracy of one (glyph set, camera condition) cell.
 
     Returns exact-sequence and per-digit accuracy (%), the share flagged ``low_confidence``, of wrong *and*
-    unflagged and of right *but* flagged results, rejections (ValueError, counted wrong), and per-font exact-match
-    counts.
+    unflagged and of right *but* flagged results, rejections (ValueError, counted wrong), and exact-match counts
+    ``[hits, cards]`` per font and per digit size (``per_size``, keyed by the bins of :data:`CELL_SIZE_BINS`).
 
     :param transcribe: ``InstructionGenerator.transcribe``.
     :param items: from :func:`camera_items`.
@@ -301,6 +308,7 @@ def camera_cell(transcribe: Callable[..., object], items: list[CardItem], condit
     code = CAMERA_CONDITIONS.index(condition)
     exact, errors, total, flagged, rejected, silent_wrong, right_flagged = 0, 0, 0, 0, 0, 0, 0
     per_font: dict[str, list[int]] = {}
+    per_size: dict[tuple[int, int], list[int]] = {size: [0, 0] for size in CELL_SIZE_BINS}
     for i, item in enumerate(items):
         image = apply_camera_condition(item.ink, condition, np.random.default_rng([seed, i, code]))
         try:
@@ -313,6 +321,10 @@ def camera_cell(transcribe: Callable[..., object], items: list[CardItem], condit
             per_font.setdefault(item.font, [0, 0])
             per_font[item.font][0] += hit
             per_font[item.font][1] += 1
+        for low, high in CELL_SIZE_BINS:
+            if low <= item.cell <= high:
+                per_size[low, high][0] += hit
+                per_size[low, high][1] += 1
         if result is None:
             rejected += 1
             errors += len(item.arms)
@@ -327,4 +339,4 @@ def camera_cell(transcribe: Callable[..., object], items: list[CardItem], condit
     return {"exact": 100.0 * exact / n, "digit": 100.0 * (1 - errors / max(1, total)),
             "flagged": 100.0 * flagged / n, "rejected": 100.0 * rejected / n,
             "wrong_unflagged": 100.0 * silent_wrong / n, "right_flagged": 100.0 * right_flagged / n,
-            "per_font": per_font}
+            "per_font": per_font, "per_size": per_size}
