@@ -58,7 +58,7 @@ def main() -> None:
     items = {engine: speech_items(engine, args.items, SELECTION_SEED) for engine in engines}
     # each variant is the reader with one correction replaced by the identity (None: as shipped)
     variants = {"as shipped": None,
-                "without the low cut": (features.low_cut, "__defaults__", (0.0,)),
+                "without the low cut": (features, "low_cut", lambda waveform, rate: np.asarray(waveform, np.float32)),
                 "without reading at one level": (features, "at_peak", lambda waveform: waveform),
                 "without the noise-floor subtraction": (features, "subtract_noise_floor", lambda power: power)}
     lines = [f"Audio alone, exact sequence (%), {args.items} instructions per engine (selection seed "

@@ -860,7 +860,7 @@ def test_corrections_benchmark_reads_with_and_without_each_correction_and_restor
     import vafn_media.generator as generator_module
 
     module = load_benchmark("speech_corrections")
-    kept = (features.at_peak, features.low_cut.__defaults__, features.subtract_noise_floor,
+    kept = (features.at_peak, features.low_cut, features.subtract_noise_floor,
             generator_module.with_quiet_edges)
     out = tmp_path / "corrections.md"
     argv = ["speech_corrections.py", "--items", "2", "--engines", "espeak", "--out", str(out)]
@@ -874,7 +874,7 @@ def test_corrections_benchmark_reads_with_and_without_each_correction_and_restor
     trimmed = out.read_text().split("Clean clips trimmed at their words")[1].splitlines()
     assert [line.split(" | ")[0] for line in trimmed if line.count("|") == 3 and "---" not in line] == [
         "| Reader", "| as shipped", "| without the added silence"]  # a reader and espeak's exact %
-    assert (features.at_peak, features.low_cut.__defaults__, features.subtract_noise_floor,
+    assert (features.at_peak, features.low_cut, features.subtract_noise_floor,
             generator_module.with_quiet_edges) == kept
 
 
