@@ -52,9 +52,9 @@ def load_pretrained(algo: str, env_id: str = "VAFN/ThreeArmReach-v1", env: gym.E
     info = pretrained_info(algo, env_id)  # the clear error for unknown pairs
     success = info["evaluation"]["success"]
     if success < WORKING_SUCCESS:
+        note = info.get("note", "it is shipped to reproduce a negative result (see pretrained_info)")
         warnings.warn(f"the packaged {algo} policy of {env_id} completes only {success:.0%} of held-out instructions "
-                      f"({info['evaluation']['protocol']}); it is shipped to reproduce a negative result: "
-                      f"{info.get('note', 'see pretrained_info')}", stacklevel=2)
+                      f"({info['evaluation']['protocol']}); {note}", stacklevel=2)
     return load_weights(pretrained_path(algo, env_id), env=env)
 
 
