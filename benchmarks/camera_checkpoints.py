@@ -55,17 +55,15 @@ def main(argv: list[str] | None = None) -> None:
     import torch
     from tqdm import tqdm
 
-    from vafn_media import InstructionGenerator
     from vafn_media.camera import CAMERA_CONDITIONS
-    from vafn_media.evaluation import CAMERA_SETS, camera_cell, camera_items
+    from vafn_media.evaluation import CAMERA_SETS, camera_cell, camera_items, checkpoint_by_name
 
     args = parse_args(argv)
     torch.set_num_threads(1)
     cards = {glyph_set: camera_items(glyph_set, args.items, CAMERA_SELECTION_SEED) for glyph_set in CAMERA_SETS}
     scores: dict[str, dict[tuple[str, str], float]] = {}
     for checkpoint in args.checkpoints:
-        generator = InstructionGenerator.load() if checkpoint == "packaged" else InstructionGenerator.load(checkpoint)
-        name = checkpoint if checkpoint == "packaged" else Path(checkpoint).parent.name  # the run's folder
+        generator, name = checkpoint_by_name(checkpoint)
         scores[name] = {(glyph_set, condition): camera_cell(generator.transcribe, items, condition,
                                                             CAMERA_SELECTION_SEED)["exact"]
                         for glyph_set, items in tqdm(cards.items(), desc=name, unit="glyph set")

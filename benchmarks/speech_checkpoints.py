@@ -77,10 +77,9 @@ def main() -> None:
     import torch
     from tqdm import tqdm
 
-    from vafn_media import InstructionGenerator
     from vafn_media.augment import CONDITIONS
     from vafn_media.engines import available_engines
-    from vafn_media.evaluation import robust_cell, speech_items
+    from vafn_media.evaluation import checkpoint_by_name, robust_cell, speech_items
 
     args = parse_args()
     torch.set_num_threads(1)
@@ -92,8 +91,7 @@ def main() -> None:
              "|---|---|" + "---|" * (len(CONDITIONS) + 1)]
     errors: list[str] = []
     for checkpoint in args.checkpoints:
-        generator = InstructionGenerator.load() if checkpoint == "packaged" else InstructionGenerator.load(checkpoint)
-        name = checkpoint if checkpoint == "packaged" else Path(checkpoint).parent.name  # the run's folder
+        generator, name = checkpoint_by_name(checkpoint)
         if args.errors:
             errors.append(f"{name}:")
         for engine in engines:

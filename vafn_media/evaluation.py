@@ -5,12 +5,17 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from vafn_media.constants import NOISE_SNR_DB
 from vafn_media.corruptions import add_awgn, cutout
 from vafn_media.dataset import RawItems
+
+if TYPE_CHECKING:
+    from vafn_media.generator import InstructionGenerator
 
 #: Table-1 rows: name -> (use audio, audio noisy, use image, image Cutout, use code).
 ROWS: dict[str, tuple[bool, bool, bool, bool, bool]] = {
@@ -129,6 +134,19 @@ def edit_distance(a: tuple[int, ...], b: tuple[int, ...]) -> int:
         for j, y in enumerate(b, 1):
             previous, row[j] = row[j], min(row[j] + 1, row[j - 1] + 1, previous + (x != y))
     return row[-1]
+
+
+def checkpoint_by_name(checkpoint: str) -> tuple[InstructionGenerator, str]:
+    """A generator and its column name for the checkpoint-comparison benchmarks: ``"packaged"`` or a ``.pt`` file
+    (with its ``.json`` beside it), named by the folder of its training run.
+
+    :param checkpoint: ``"packaged"`` or a path.
+    """
+    from vafn_media.generator import InstructionGenerator
+
+    if checkpoint == "packaged":
+        return InstructionGenerator.load(), checkpoint
+    return InstructionGenerator.load(checkpoint), Path(checkpoint).parent.name
 
 
 @dataclass
