@@ -243,27 +243,26 @@ def camera_section(generator, items_per_set: int, seed: int = EVAL_SEED_BASE + 6
         lines.append(f"| {glyph_set} | **mean of the 6 camera conditions** | **{np.mean(exact[1:]):.1f}** | | | | | |")
         rows.append([glyph_set, "mean of camera conditions", f"{np.mean(exact[1:]):.2f}", "", "", "", "", "",
                      len(items)])
+    def breakdown(groups: list[tuple[str, str, dict[str, list[int]]]]) -> None:
+        """Per (markdown label cells, CSV name, {condition: [hits, cards]}): one markdown row of exact % per
+        condition, and one CSV row per condition."""
+        for label, name, cells in groups:
+            lines.append(f"| {label} | " + " | ".join(
+                f"{100.0 * cells[c][0] / max(1, cells[c][1]):.1f}" for c in CAMERA_CONDITIONS) + " |")
+            for condition in CAMERA_CONDITIONS:
+                hits, count = cells[condition]
+                rows.append([name, condition, f"{100.0 * hits / max(1, count):.2f}", "", "", "", "", "", count])
+
     lines += ["", "Unseen TrueType fonts, one row per font (exact %, each font has 1/"
               f"{max(1, len(per_font))} of the cards):", "",
               "| Font | " + " | ".join(CAMERA_CONDITIONS) + " |", "|" + "---|" * (1 + len(CAMERA_CONDITIONS))]
-    for font, cells in per_font.items():
-        lines.append(f"| {font} | " + " | ".join(
-            f"{100.0 * cells[c][0] / max(1, cells[c][1]):.1f}" for c in CAMERA_CONDITIONS) + " |")
-        for condition in CAMERA_CONDITIONS:
-            hits, count = cells[condition]
-            rows.append([f"font:{font}", condition, f"{100.0 * hits / max(1, count):.2f}", "", "", "", "", "", count])
+    breakdown([(font, f"font:{font}", cells) for font, cells in per_font.items()])
     lines += ["", "By digit size: exact % per side of a digit's cell on the card (pixels; blur and JPEG blocks are in "
               "pixels, so they take more of a small digit), cards in brackets:", "",
               "| Glyphs | Digit cell (px) | " + " | ".join(CAMERA_CONDITIONS) + " |",
               "|" + "---|" * (2 + len(CAMERA_CONDITIONS))]
-    for (glyph_set, (low, high)), cells in per_size.items():
-        count = cells[CAMERA_CONDITIONS[0]][1]
-        lines.append(f"| {glyph_set} | {low}-{high} ({count}) | " + " | ".join(
-            f"{100.0 * cells[c][0] / max(1, cells[c][1]):.1f}" for c in CAMERA_CONDITIONS) + " |")
-        for condition in CAMERA_CONDITIONS:
-            hits, count = cells[condition]
-            rows.append([f"{glyph_set}:cell {low}-{high}px", condition, f"{100.0 * hits / max(1, count):.2f}", "", "",
-                         "", "", "", count])
+    breakdown([(f"{glyph_set} | {low}-{high} ({cells[CAMERA_CONDITIONS[0]][1]})", f"{glyph_set}:cell {low}-{high}px",
+                cells) for (glyph_set, (low, high)), cells in per_size.items()])
     return lines, rows
 
 
