@@ -163,6 +163,9 @@ def test_bad_kwargs_fail_clearly():
             gym.make(REACH, **{name: "x"})
     with pytest.raises(ValueError, match="robot must be one of"):
         gym.make(MULTI, robot="ur5")
+    for n_arms in (1, 9):  # both ends name the same range
+        with pytest.raises(ValueError, match=r"n_arms must be in \[2, 8\], got " + str(n_arms)):
+            gym.make(MULTI, n_arms=n_arms)
 
 
 # --- targets ---

@@ -35,7 +35,7 @@ from vafn_gym.constants import (
     WORKSPACE_LOW,
 )
 from vafn_gym.instructions import Instruction
-from vafn_gym.layout import FRAMES, ArmLayout
+from vafn_gym.layout import FRAMES, MAX_ARMS, ArmLayout
 from vafn_gym.robots import RobotSpec, get_robot
 from vafn_gym.sim import BulletSim
 from vafn_gym.task import (
@@ -137,7 +137,7 @@ class MultiArmEnv(gym.Env):
     ) -> None:
         self.robot = get_robot(robot)
         if layout is None:
-            layout = ArmLayout(n_arms=check_int("n_arms", n_arms, 2), base_radius=self.robot.base_radius)
+            layout = ArmLayout(n_arms=check_int("n_arms", n_arms, 2, MAX_ARMS), base_radius=self.robot.base_radius)
         elif not isinstance(layout, ArmLayout):
             raise TypeError(f"layout must be an ArmLayout, got {type(layout).__name__}")
         layout.check_feasible(self.robot)
