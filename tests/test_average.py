@@ -63,6 +63,8 @@ def test_the_command_writes_a_loadable_calibrated_checkpoint_that_names_its_ingr
     assert calibrated == [["--checkpoint", str(tmp_path / "soup" / "instruction_model.pt")]]
     assert written["command"].startswith("python -m vafn_media.average ")
     assert [entry["checkpoint"] for entry in written["averaged"]] == [str(p) for p in paths]
+    assert all(entry["command"] == metadata["command"] for entry in written["averaged"])
+    assert "validation" not in written and written["args"] == metadata["args"]  # the runs' records stay theirs
     soup = torch.load(tmp_path / "soup" / "instruction_model.pt", weights_only=True)
     assert torch.allclose(soup["encoders.audio.net.0.weight"], state["encoders.audio.net.0.weight"])  # (0.9 + 1.1) / 2
     generator = InstructionGenerator.load(tmp_path / "soup" / "instruction_model.pt", warm=False)

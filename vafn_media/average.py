@@ -20,6 +20,10 @@ from pathlib import Path
 from vafn_media.constants import MODALITIES
 
 
+#: Metadata that describes one training run, kept per checkpoint under "averaged" rather than as the average's own.
+_RUN_RECORD: tuple[str, ...] = ("command", "init", "validation", "data_seconds", "total_seconds", "cpu_seconds")
+
+
 def _averaged(name: str, modality: str) -> bool:
     """Whether weight ``name`` belongs to ``modality``'s encoder or adapter (what ``--train-only`` trains)."""
     return name.startswith((f"encoders.{modality}.", f"adapters.{modality}."))
@@ -88,11 +92,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
                                     args.modality, args.weights)
     except ValueError as error:
         parser.error(str(error))
-    metadata = json.loads(args.checkpoints[0].with_suffix(".json").read_text())
+    ingredients = [json.loads(path.with_suffix(".json").read_text()) for path in args.checkpoints]
+    # The first checkpoint's config and training arguments (its validation split calibrates the average); each
+    # checkpoint's own record of its run goes under "averaged".
+    metadata = {key: value for key, value in ingredients[0].items() if key not in _RUN_RECORD}
     metadata.update({
         "command": "python -m vafn_media.average " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "averaged": [{"checkpoint": str(path), "command": json.loads(path.with_suffix(".json").read_text()).get(
-            "command")} for path in args.checkpoints],
+        "averaged": [{"checkpoint": str(path), **{key: meta[key] for key in _RUN_RECORD if key in meta}}
+                     for path, meta in zip(args.checkpoints, ingredients)],
     })
     args.out.mkdir(parents=True, exist_ok=True)
     out = args.out / f"{CHECKPOINT_NAME}.pt"
