@@ -71,12 +71,6 @@ def average_state_dicts(states: Sequence[dict], modality: str, weights: Sequence
 
 def main(argv: Sequence[str] | None = None) -> dict:
     """Command line: average checkpoints, write ``<out>/instruction_model.{pt,json}``, calibrate it."""
-    import torch
-
-    from vafn_gym.files import atomic_write
-    from vafn_media.calibration import main as calibrate
-    from vafn_media.train import CHECKPOINT_NAME
-
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("checkpoints", type=Path, nargs="+", help=".pt files, each with its .json beside it")
     parser.add_argument("--out", type=Path, required=True, help="folder for instruction_model.{pt,json}")
@@ -87,6 +81,12 @@ def main(argv: Sequence[str] | None = None) -> dict:
     for path in args.checkpoints:
         if not path.is_file() or not path.with_suffix(".json").is_file():
             parser.error(f"{path}: need the .pt file and its .json metadata beside it")
+    import torch  # after the argument checks, so --help and a wrong path answer at once
+
+    from vafn_gym.files import atomic_write
+    from vafn_media.calibration import main as calibrate
+    from vafn_media.train import CHECKPOINT_NAME
+
     try:
         state = average_state_dicts([torch.load(p, map_location="cpu", weights_only=True) for p in args.checkpoints],
                                     args.modality, args.weights)
