@@ -133,6 +133,11 @@ def ttf_glyph(arm: int, font: str, cell: int, rng: np.random.Generator) -> np.nd
     return _jitter(out, rng, cell)
 
 
+def draw_card_cell(rng: np.random.Generator) -> int:
+    """A random side of one digit's cell on a card (pixels, uniform in :data:`CARD_CELL_RANGE`)."""
+    return int(rng.integers(CARD_CELL_RANGE[0], CARD_CELL_RANGE[1] + 1))
+
+
 def render_card_ink(arms: Sequence[int], rng: np.random.Generator, source: str, heldout: bool,
                     font: str | None = None, cell: int | None = None) -> np.ndarray:
     """The ink map of a card (float32 in [0, 1]; 1 = full ink): one row of digits with blank margins.
@@ -142,7 +147,8 @@ def render_card_ink(arms: Sequence[int], rng: np.random.Generator, source: str, 
     :param source: "font" (TrueType), "hershey", "handwritten" (scikit-learn digits) or, for training only, "mnist".
     :param heldout: draw from the held-out fonts / glyphs instead of the training ones.
     :param font: for "font", this TrueType file instead of a random one from the split's list.
-    :param cell: side of one digit's cell (pixels); None draws it from CARD_CELL_RANGE (the first draw from ``rng``).
+    :param cell: side of one digit's cell (pixels); None draws it with :func:`draw_card_cell` (the first draw from
+        ``rng``).
     """
     from vafn_media.strips import _handwritten_glyph, _printed_glyph
 
@@ -151,7 +157,7 @@ def render_card_ink(arms: Sequence[int], rng: np.random.Generator, source: str, 
     if len(arms) > MAX_INSTRUCTION_LENGTH:
         raise ValueError(f"at most {MAX_INSTRUCTION_LENGTH} digits fit a card, got {len(arms)}")
     if cell is None:
-        cell = int(rng.integers(CARD_CELL_RANGE[0], CARD_CELL_RANGE[1] + 1))
+        cell = draw_card_cell(rng)
     fonts = HELDOUT_TTF_FONTS if heldout else TRAIN_TTF_FONTS
     chosen = font if font is not None else fonts[int(rng.integers(len(fonts)))]
     margins = (rng.uniform(*CARD_MARGIN_RANGE, size=4) * cell).astype(int)  # top, bottom, left, right

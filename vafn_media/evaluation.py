@@ -293,7 +293,7 @@ def camera_items(glyph_set: str, count: int, seed: int) -> list[CardItem]:
     :param count: number of cards.
     :param seed: seed of labels and rendering.
     """
-    from vafn_media.camera import CARD_CELL_RANGE, HELDOUT_TTF_FONTS, TRAIN_TTF_FONTS, render_card_ink
+    from vafn_media.camera import HELDOUT_TTF_FONTS, TRAIN_TTF_FONTS, draw_card_cell, render_card_ink
 
     source, heldout = CAMERA_SETS[glyph_set]
     fonts = HELDOUT_TTF_FONTS if heldout else TRAIN_TTF_FONTS
@@ -303,7 +303,7 @@ def camera_items(glyph_set: str, count: int, seed: int) -> list[CardItem]:
         rng = np.random.default_rng([seed, code, i])
         arms = tuple(int(a) for a in rng.integers(1, 4, int(rng.integers(1, 11))))
         font = fonts[i % len(fonts)] if source == "font" else None
-        cell = int(rng.integers(CARD_CELL_RANGE[0], CARD_CELL_RANGE[1] + 1))  # render_card_ink's own first draw
+        cell = draw_card_cell(rng)  # drawn here, as render_card_ink would, so the card knows its digit size
         items.append(CardItem(arms, render_card_ink(arms, rng, source, heldout, font=font, cell=cell), font, cell))
     return items
 
