@@ -15,6 +15,7 @@ from vafn_sb3.common.adaptation import Adaptable, evaluate_adaptation, run_episo
 from vafn_sb3.common.agents import (
     AgentLayout,
     SharedAgentSACPolicy,
+    frozen,
     nearest_neighbour,
     per_agent_sum,
     shared_actor_for_env,
@@ -522,3 +523,18 @@ def test_shared_adaptation_protocol_runs_for_every_baseline(trained):
     assert [row["k"] for row in rows] == [0, 1]
     assert all(np.isfinite(row["return_mean"]) for row in rows)
     assert 0.0 <= rows[1]["support_arms"] <= 1.0  # the fine-tuned copy keeps its support set
+
+
+def test_frozen_backpropagates_through_a_module_without_its_weight_gradients():
+    """An actor loss through a frozen critic: the action gets its gradient, the critic none; flags come back."""
+    critic = th.nn.Sequential(th.nn.Linear(3, 4), th.nn.ReLU(), th.nn.Linear(4, 1))
+    critic[2].bias.requires_grad_(False)  # a parameter frozen before stays frozen after
+    actions = th.rand(5, 3, requires_grad=True)
+    with frozen(critic):
+        critic(actions).sum().backward()
+    assert actions.grad is not None and actions.grad.abs().sum() > 0
+    assert all(parameter.grad is None for parameter in critic.parameters())
+    assert [parameter.requires_grad for parameter in critic.parameters()] == [True, True, True, False]
+    with pytest.raises(RuntimeError, match="inside"), frozen(critic):
+        raise RuntimeError("inside")
+    assert [parameter.requires_grad for parameter in critic.parameters()] == [True, True, True, False]

@@ -16,6 +16,8 @@ agent ids (the default) this is the parameter sharing of ``marlbenchmark/on-poli
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -454,6 +456,23 @@ class SharedAgentSACPolicy(AgentLayoutPolicyMixin, SACPolicy):
         """Build the shared per-agent actor."""
         actor_kwargs = self._update_features_extractor(self.actor_kwargs, features_extractor)
         return SquashedAgentActor(**self._agent_actor_kwargs(actor_kwargs)).to(self.device)
+
+
+@contextmanager
+def frozen(module: nn.Module) -> Iterator[None]:
+    """Within the block ``module``'s parameters take no gradient: a loss built inside backpropagates *through* it.
+
+    An actor loss reads the critic; its weight gradients would be thrown away (the critic's optimiser zeroes them
+    before its own step), so not computing them leaves every update unchanged and saves their matrix products.
+    """
+    flags = [(parameter, parameter.requires_grad) for parameter in module.parameters()]
+    for parameter, _ in flags:
+        parameter.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for parameter, flag in flags:
+            parameter.requires_grad_(flag)
 
 
 def clipped_step(

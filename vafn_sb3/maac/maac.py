@@ -12,7 +12,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import MaybeCallback
 from stable_baselines3.common.utils import polyak_update
 
-from vafn_sb3.common.agents import clipped_step
+from vafn_sb3.common.agents import clipped_step, frozen
 from vafn_sb3.common.finetune import FineTuneAdaptation
 from vafn_sb3.common.serialization import AtomicSaveMixin
 from vafn_sb3.maac.policies import AttentionCritic, MAACPolicy
@@ -85,7 +85,7 @@ class MAAC(AtomicSaveMixin, FineTuneAdaptation, SAC):
             optimizers.append(self.ent_coef_optimizer)
         self._update_learning_rate(optimizers)
         logs: dict[str, list[float]] = {"actor_loss": [], "critic_loss": [], "attention_reg": [], "ent_coef": []}
-        critic_parameters = list(self.critic.parameters())
+        critic_parameters, actor_parameters = list(self.critic.parameters()), list(self.actor.parameters())
         shared_parameters = self.critic.shared_parameters()
         n_agents = self.policy.agent_layout.n_agents
         critic_max_grad_norm = self.critic_max_grad_norm or CRITIC_MAX_GRAD_NORM_PER_AGENT * n_agents
@@ -115,9 +115,10 @@ class MAAC(AtomicSaveMixin, FineTuneAdaptation, SAC):
             self.critic.optimizer.step()
 
             # Q_i with agent i's own sampled action live and the other agents' samples detached.
-            own_q = th.stack(self.critic.own_action_q(data.observations, actions_pi)).min(0).values
-            actor_loss = (ent_coef * log_prob - own_q).sum(-1).mean()
-            clipped_step(actor_loss, self.actor.optimizer, list(self.actor.parameters()), self.actor_max_grad_norm)
+            with frozen(self.critic):
+                own_q = th.stack(self.critic.own_action_q(data.observations, actions_pi)).min(0).values
+                actor_loss = (ent_coef * log_prob - own_q).sum(-1).mean()
+                clipped_step(actor_loss, self.actor.optimizer, actor_parameters, self.actor_max_grad_norm)
 
             logs["critic_loss"].append(critic_loss.item())
             logs["attention_reg"].append(attention_reg.item())

@@ -70,30 +70,27 @@ class AttentionQ(nn.Module):
         others_index = th.arange(n_agents).expand(n_agents, n_agents)[~th.eye(n_agents, dtype=th.bool)]
         self.register_buffer("others_index", others_index, persistent=False)
 
-    def _encode(self, local_obs: th.Tensor, actions: th.Tensor) -> th.Tensor:
-        return self.sa_encoder(th.cat([local_obs, split_agents(actions, self.layout.action_per_agent)], dim=-1))
-
     def shared_parameters(self) -> list[nn.Parameter]:
         """Parameters whose gradients MAAC scales by ``1/n_agents`` (``AttentionCritic.shared_modules``)."""
         modules = (self.key_extractor, self.selector_extractor, self.value_extractor, self.sa_encoder)
         return [p for module in modules for p in module.parameters()]
 
     def forward(
-        self, obs: th.Tensor, actions: th.Tensor, others_actions: th.Tensor | None = None
+        self, obs: th.Tensor, actions: th.Tensor, detach_others: bool = False
     ) -> tuple[th.Tensor, th.Tensor]:
         """Per-agent ``Q (B, N)`` and attention logits ``(B, heads, N, N - 1)``.
 
         :param obs: joint observations ``(B, N * obs_per_agent)``.
         :param actions: joint actions ``(B, N * action_per_agent)``; agent ``i``'s block enters ``Q_i`` through its own
             encoding.
-        :param others_actions: joint actions the *other* agents' keys and values are computed from (default
-            ``actions``). Passing ``actions.detach()`` gives every ``Q_i`` a gradient w.r.t. ``a_i`` only, in one
-            forward pass (``Q_i`` attends over ``j != i`` only, so its sole path to ``a_i`` is ``e_i``).
+        :param detach_others: compute the keys and values (what agent ``i`` reads of the agents ``j != i``) from
+            detached encodings. This gives every ``Q_i`` a gradient w.r.t. ``a_i`` only, in one forward pass (``Q_i``
+            attends over ``j != i`` only, so its sole path to ``a_i`` is ``e_i``).
         """
         n_agents = self.layout.n_agents
         local_obs = split_agents(obs, self.layout.obs_per_agent)
-        sa = self._encode(local_obs, actions)
-        sa_others = sa if others_actions is None else self._encode(local_obs, others_actions)
+        sa = self.sa_encoder(th.cat([local_obs, split_agents(actions, self.layout.action_per_agent)], dim=-1))
+        sa_others = sa.detach() if detach_others else sa
         s = self.state_encoder(local_obs)
         batch = obs.shape[0]
         shape = (batch, n_agents, self.attend_heads, self.head_dim)
@@ -158,7 +155,7 @@ class AttentionCritic(BaseModel):
 
     def own_action_q(self, obs: th.Tensor, actions: th.Tensor) -> tuple[th.Tensor, ...]:
         """Per-agent Q-values of every critic, differentiable w.r.t. each agent's *own* action only (actor losses)."""
-        return tuple(q_net(obs, actions, others_actions=actions.detach())[0] for q_net in self.q_networks)
+        return tuple(q_net(obs, actions, detach_others=True)[0] for q_net in self.q_networks)
 
     def forward_with_logits(self, obs: th.Tensor, actions: th.Tensor) -> list[tuple[th.Tensor, th.Tensor]]:
         """``(Q, attention logits)`` of every critic (the logits feed MAAC's attention regulariser)."""

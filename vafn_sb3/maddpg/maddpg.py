@@ -13,7 +13,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import MaybeCallback
 from stable_baselines3.common.utils import polyak_update
 
-from vafn_sb3.common.agents import clipped_step, substitute_agent_actions
+from vafn_sb3.common.agents import clipped_step, frozen, substitute_agent_actions
 from vafn_sb3.common.finetune import FineTuneAdaptation, GaussianExplorationPolicy
 from vafn_sb3.common.serialization import AtomicSaveMixin
 from vafn_sb3.maddpg.policies import MADDPGPolicy
@@ -108,9 +108,10 @@ class MADDPG(AtomicSaveMixin, FineTuneAdaptation, TD3):
                 policy_actions = self.actor(data.observations)
                 # others' actions from the buffer
                 joint = substitute_agent_actions(data.actions, policy_actions, layout.action_per_agent)
-                q = self.critic.q1_forward(data.observations.repeat(layout.n_agents, 1), joint)
-                actor_loss = -q.mean() + self.action_reg * (policy_actions**2).mean()
-                clipped_step(actor_loss, self.actor.optimizer, actor_parameters, self.max_grad_norm)
+                with frozen(self.critic):
+                    q = self.critic.q1_forward(data.observations.repeat(layout.n_agents, 1), joint)
+                    actor_loss = -q.mean() + self.action_reg * (policy_actions**2).mean()
+                    clipped_step(actor_loss, self.actor.optimizer, actor_parameters, self.max_grad_norm)
                 actor_losses.append(actor_loss.item())
                 polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
                 polyak_update(self.actor.parameters(), self.actor_target.parameters(), self.tau)
