@@ -136,7 +136,8 @@ def test_readme_links_resolve():
             path = (doc.parent / target).resolve() if target else doc
             assert path.exists(), f"{doc.name}: broken link {target}"
             if anchor and path.suffix == ".md":
-                assert anchor in heading_anchors(path.read_text(encoding="utf-8")), f"{doc.name}: no #{anchor} in {target}"
+                anchors = heading_anchors(path.read_text(encoding="utf-8"))
+                assert anchor in anchors, f"{doc.name}: no #{anchor} in {target}"
     assert "../shared" not in text
 
 
