@@ -121,6 +121,27 @@ def seed_of(path: Path) -> int:
     return int(match.group(1)) if match else 0
 
 
+def earlier_seed_models(methods: list[Method], previous: list[dict[str, Any]]) -> dict[str, list[str]]:
+    """For ``--add-seeds``: each method's earlier models whose seeds it does not evaluate again.
+
+    A method must be evaluated as before (same algorithm, env kwargs and mode), or its seeds would not be comparable.
+    """
+    earlier_models = {}
+    for method in methods:
+        record = next((m for m in previous if m["label"] == method.label), None)
+        if record is None:
+            continue
+        now = {"algo": method.algo, "env_kwargs": method.env_kwargs, "zero_shot": method.zero_shot,
+               "target_inference": method.target_inference}
+        before = {key: record.get(key, default) for key, default in
+                  (("algo", None), ("env_kwargs", {}), ("zero_shot", False), ("target_inference", None))}
+        if now != before:
+            raise SystemExit(f"--add-seeds: {method.label} was evaluated with {before}, now with {now}")
+        seeds = {seed_of(path) for path in method.paths}
+        earlier_models[method.label] = [model for model in record["models"] if seed_of(Path(model)) not in seeds]
+    return earlier_models
+
+
 def evaluate_model(method: Method, path: Path, args: argparse.Namespace, tasks: list) -> list[dict]:
     """Adaptation rows of one saved model of ``method`` (K = 0 only when the method is zero-shot)."""
     torch.set_num_threads(1)
@@ -277,6 +298,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--seed", type=int, default=0, help="seed of the support rollouts and evaluation episodes")
     parser.add_argument("--append", action="store_true",
                         help="keep the other methods' rows of an earlier run in --out (same tasks and flags)")
+    parser.add_argument("--add-seeds", action="store_true",
+                        help="with --append: a method already in --out keeps its rows of the seeds these models do "
+                             "not have (adding seeds to it); it must be evaluated as before")
     parser.add_argument("--workers", type=int, default=1, help="models evaluated in parallel (one thread each)")
     parser.add_argument("--out", type=Path, default=Path("results/adaptation"), help="output folder")
     parser.add_argument("--title", default="", help="what this run is, put first in the figure's title")
@@ -305,17 +329,24 @@ def main(argv: list[str] | None = None) -> None:
     tasks = benchmark.test_tasks
     start = time.perf_counter()
     kept, method_records = [], []
+    if args.add_seeds and not args.append:
+        raise SystemExit("--add-seeds adds seeds to the methods of an earlier run in --out: it needs --append")
+    labels = {method.label for method in methods}
+    earlier_models: dict[str, list[str]] = {}
     if args.append and (args.out / "adaptation.csv").is_file():
-        replaced = {method.label for method in methods} | set(REFERENCES)
-        kept = [row for row in read_rows(args.out / "adaptation.csv") if row["method"] not in replaced]
-        earlier = {(row["task"], row["n_support"]) for row in kept}
         previous_meta = json.loads((args.out / "adaptation.json").read_text())
+        evaluated = {(method.label, seed_of(path)) for method in methods for path in method.paths}
+        replaced = set(REFERENCES) | (set() if args.add_seeds else labels)
+        kept = [row for row in read_rows(args.out / "adaptation.csv")
+                if row["method"] not in replaced and (row["method"], row["seed"]) not in evaluated]
+        earlier = {(row["task"], row["n_support"]) for row in kept}
         if not earlier <= {(task.to_code(), args.n_support) for task in tasks} or (
                 previous_meta.get("support", "episodes") != args.support):
             raise SystemExit(f"--append: {args.out / 'adaptation.csv'} has other tasks, another --n-support or "
                              "another --support")
-        previous = previous_meta["methods"]
-        method_records = [m for m in previous if m["label"] not in replaced]
+        method_records = [m for m in previous_meta["methods"] if m["label"] not in labels]
+        if args.add_seeds:
+            earlier_models = earlier_seed_models(methods, previous_meta["methods"])
     rows = evaluate_references(args, tasks) + kept + evaluate_methods(methods, args, tasks)
     curves = aggregate_adaptation(rows)
     summary = summary_rows(curves)
@@ -326,7 +357,8 @@ def main(argv: list[str] | None = None) -> None:
     meta = {"command": shlex.join(sys.argv), "title": args.title, "env": args.env, "env_kwargs": args.env_kwargs,
             "test_lengths": [args.min_length, args.max_length], "n_tasks": len(tasks), "benchmark_seed": benchmark.seed,
             "n_support_steps": args.n_support, "support": args.support, "support_episodes_mean": episodes, "k": args.k,
-            "methods": method_records + [{"label": m.label, "algo": m.algo, "models": [str(p) for p in m.paths],
+            "methods": method_records + [{"label": m.label, "algo": m.algo,
+                                          "models": earlier_models.get(m.label, []) + [str(p) for p in m.paths],
                                           "env_kwargs": m.env_kwargs, "zero_shot": m.zero_shot,
                                           "target_inference": m.target_inference,
                                           **({"target_estimator": str(args.target_estimator or "packaged")}

@@ -137,3 +137,28 @@ def test_append_keeps_other_methods_and_refuses_other_tasks(study, tmp_path, mon
     with pytest.raises(SystemExit, match="other tasks"):
         study["main"]([*common[:-2], "--n-support", "9", "--out", str(out), "--append",
                        "--method", "c", "mtsac", str(models / "*.zip")])
+
+
+def test_add_seeds_keeps_a_methods_earlier_seeds_and_refuses_another_evaluation(study, tmp_path):
+    models = tmp_path / "models"
+    models.mkdir()
+    for seed in (0, 1):
+        tiny(MTSAC, {}, seed, models / f"mtsac_seed{seed}.zip")
+    out = tmp_path / "out"
+    common = ["--max-length", "1", "--n-tasks", "1", "--k", "0", "--n-support", "8", "--out", str(out)]
+    study["main"]([*common, "--method", "a", "mtsac", str(models / "mtsac_seed0.zip")])
+    first = [r for r in csv.DictReader((out / "adaptation.csv").open()) if r["method"] == "a"]
+    study["main"]([*common, "--method", "a", "mtsac", str(models / "mtsac_seed1.zip"), "--append", "--add-seeds"])
+    rows = [r for r in csv.DictReader((out / "adaptation.csv").open()) if r["method"] == "a"]
+    assert sorted(r["seed"] for r in rows) == ["0", "1"] and [r for r in rows if r["seed"] == "0"] == first
+    meta = json.loads((out / "adaptation.json").read_text())
+    assert [Path(m).name for m in meta["methods"][0]["models"]] == ["mtsac_seed0.zip", "mtsac_seed1.zip"]
+    assert [e["n_seeds"] for e in meta["summary"] if e["method"] == "a"] == [2]
+    # without --add-seeds the method's rows are replaced, as before
+    study["main"]([*common, "--method", "a", "mtsac", str(models / "mtsac_seed1.zip"), "--append"])
+    assert [r["seed"] for r in csv.DictReader((out / "adaptation.csv").open()) if r["method"] == "a"] == ["1"]
+    with pytest.raises(SystemExit, match="was evaluated with"):
+        study["main"]([*common, "--method", "a", "mtsac", str(models / "mtsac_seed0.zip"), "zero-shot", "--append",
+                       "--add-seeds"])
+    with pytest.raises(SystemExit, match="needs --append"):
+        study["main"]([*common, "--method", "a", "mtsac", str(models / "mtsac_seed0.zip"), "--add-seeds"])
