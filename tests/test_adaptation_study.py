@@ -162,3 +162,21 @@ def test_add_seeds_keeps_a_methods_earlier_seeds_and_refuses_another_evaluation(
                        "--add-seeds"])
     with pytest.raises(SystemExit, match="needs --append"):
         study["main"]([*common, "--method", "a", "mtsac", str(models / "mtsac_seed0.zip"), "--add-seeds"])
+
+
+def test_failures_after_adaptation_are_the_study_episodes(study, tmp_path, monkeypatch, capsys):
+    """benchmarks/failures.py --k runs the adaptation study's episodes: the same success and collision rates."""
+    tiny(MTSAC, {}, 0, tmp_path / "mtsac_seed0.zip")
+    out = tmp_path / "out"
+    study["main"](["--max-length", "1", "--n-tasks", "2", "--k", "2", "--n-support", "8", "--out", str(out),
+                   "--method", "m", "mtsac", str(tmp_path / "mtsac_seed0.zip")])
+    rows = [r for r in csv.DictReader((out / "adaptation.csv").open()) if r["method"] == "m" and r["k"] == "2"]
+    success = sum(float(r["success_rate"]) for r in rows) / 2
+    collision = sum(float(r["collision_rate"]) for r in rows) / 2
+    capsys.readouterr()  # the study's own printout
+    monkeypatch.setattr(sys, "argv", ["failures.py", str(tmp_path / "mtsac_seed0.zip"), "--env", HIDDEN,
+                                      "--max-length", "1", "--n-test", "2", "--k", "2", "--n-support", "8"])
+    runpy.run_path(str(ROOT / "benchmarks" / "failures.py"), run_name="__main__")
+    printed = capsys.readouterr().out
+    assert printed.startswith(f"2 held-out instructions after 2 adaptation steps on 8 support transitions: success "
+                              f"{success:.2f}, collision rate {collision:.2f}")

@@ -211,6 +211,12 @@ def test_adapt_leaves_model_bit_identical_and_adapts(model):
     unadapted = model.adapt(env, task=task, n_support=8, k=0, seed=0)
     assert np.allclose(unadapted.predict(obs)[0], model.predict(obs, deterministic=True)[0], atol=1e-6)
     assert adapted.predict(np.stack([obs, obs]))[0].shape == (2, ACTION_DIM)
+    # the seed fixes the inner rounds' action samples too: the same seed adapts to the same policy, another does not
+    torch.manual_seed(123)  # whatever the caller's stream
+    again = model.adapt(env, task=task, n_support=32, k=3, seed=0)
+    assert np.array_equal(again.predict(obs)[0], adapted.predict(obs)[0])
+    other = model.adapt(env, task=task, n_support=32, k=3, seed=1)
+    assert not np.array_equal(other.predict(obs)[0], adapted.predict(obs)[0])
 
 
 def test_adapt_restores_model_when_it_raises(model, monkeypatch):
@@ -268,6 +274,17 @@ def test_evaluate_adaptation_rows(model):
     # one-waypoint tasks: the support set shows their arm executing; K = 0 collects none
     assert [r["support_arms"] for r in rows if r["k"] == 2] == [1.0, 1.0]
     assert all(np.isnan(r["support_arms"]) for r in rows if r["k"] == 0)
+    assert all("episodes" not in r for r in rows)
+    # keep_episodes: the same rows, each with its evaluation episodes (where and how each one ended)
+    kept = evaluate_adaptation(model, ENV_ID, tasks, n_support=16, k_values=[0, 2], n_eval_episodes=1,
+                               env_kwargs=ENV_KWARGS, keep_episodes=True)
+    timed = ("episodes", "adapt_time_s", "support_arms")  # support_arms is NaN at K = 0 (checked above)
+    assert [{k: v for k, v in r.items() if k not in timed} for r in kept] == [
+        {k: v for k, v in r.items() if k not in timed} for r in rows]
+    for row in kept:
+        (episode,) = row["episodes"]
+        assert episode["outcome"] in ("success", "collision", "timeout")
+        assert episode["success"] == row["success_rate"] and episode["collision"] == row["collision_rate"]
 
 
 def test_per_arm_support_shows_every_arm_of_the_task(model):

@@ -249,6 +249,7 @@ def evaluate_adaptation(
     seed: int = 0,
     env_kwargs: dict | None = None,
     support: str = "episodes",
+    keep_episodes: bool = False,
 ) -> list[dict]:
     """Adaptation curve of ``model``: deterministic evaluation after ``k`` adaptation steps, per task and ``k``.
 
@@ -266,6 +267,8 @@ def evaluate_adaptation(
     :param seed: base seed; task ``i`` uses support seed ``seed + i`` and evaluation seeds after ``EVAL_SEED_OFFSET``.
     :param env_kwargs: extra keyword arguments of ``gym.make``.
     :param support: one of :data:`SUPPORT_MODES`: what the support set of each task holds.
+    :param keep_episodes: also return each row's evaluation episodes (:func:`run_episode` rows: outcome, failing arm,
+        steps after the last waypoint) under ``episodes``.
     :return: one row per (task, k): ``task_index``, ``task`` (code), ``k``, ``n_support``, ``return_mean``,
         ``success_rate``, ``collision_rate``, ``adapt_time_s`` (wall time of ``adapt``, support collection included),
         ``support_arms`` (:func:`support_coverage` of the adapted policy's ``support``; NaN where there is none).
@@ -312,6 +315,7 @@ def evaluate_adaptation(
                         "collision_rate": float(np.mean([e["collision"] for e in episodes])),
                         "adapt_time_s": adapt_time,
                         "support_arms": coverage,
+                        **({"episodes": episodes} if keep_episodes else {}),
                     }
                 )
     finally:

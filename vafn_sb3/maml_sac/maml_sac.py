@@ -541,7 +541,8 @@ class MAMLSAC(AtomicSaveMixin, SAC):
             budget; ``None`` keeps the env's task.
         :param n_support: support transitions (default: the meta-training ``n_support``).
         :param k: inner rounds (default: the meta-training ``inner_steps``); 0 returns the meta-policy as a dict copy.
-        :param seed: seed of the support rollouts.
+        :param seed: seed of the support rollouts and of the inner rounds' action samples (as fine-tuning seeds its
+            noise), so the same seed adapts to the same parameters; the caller's torch stream is left untouched.
         :return: the adapted policy (its support set as ``support``).
         """
         n_support = self.n_support if n_support is None else int(n_support)
@@ -561,7 +562,10 @@ class MAMLSAC(AtomicSaveMixin, SAC):
             if task is not None and not is_task_list(task):
                 task = Instruction.coerce(task)
             support = collect_support(self, env, task, n_support, seed)
-            actor_params, critic_params = self.adapted_parameters([support], k)[0]
+            with torch.random.fork_rng(devices=[]):
+                if seed is not None:
+                    torch.manual_seed(seed)
+                actor_params, critic_params = self.adapted_parameters([support], k)[0]
             return AdaptedSACPolicy(self.policy, self.actor_distribution, actor_params, critic_params, support)
         finally:
             with torch.no_grad():
