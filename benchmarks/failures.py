@@ -66,13 +66,13 @@ def main() -> None:
     args = parser.parse_args()
     if (args.model is None) == (args.pretrained is None):
         parser.error("give a model path or --pretrained ALGO (one of them)")
+    if args.k < 0:
+        parser.error(f"--k must be >= 0, got {args.k}")
     torch.set_num_threads(1)
     if args.pretrained is not None:
         model = load_pretrained(args.pretrained, env_id=args.env)
     else:
         model, _ = load_model(args.model, args.algo)
-    if args.k < 0:
-        parser.error(f"--k must be >= 0, got {args.k}")
     benchmark = InstructionBenchmark(args.env, args.min_length, args.max_length, n_test=args.n_test,
                                      env_kwargs=args.env_kwargs)
     if args.k == 0:
@@ -84,8 +84,8 @@ def main() -> None:
         rows = [{"length": len(task), **row["episodes"][0]} for task, row in zip(benchmark.test_tasks, adapted)]
     rates = episode_rates(rows)
     failed = [row for row in rows if row["outcome"] != "success"]
-    adapted = f" after {args.k} adaptation steps on {args.n_support} support transitions" if args.k else ""
-    print(f"{len(rows)} held-out instructions{adapted}: success {rates['success']:.2f}, collision rate "
+    after = f" after {args.k} adaptation steps on {args.n_support} support transitions" if args.k else ""
+    print(f"{len(rows)} held-out instructions{after}: success {rates['success']:.2f}, collision rate "
           f"{rates['collision']:.2f}, {len(failed)} failed\n")
     if failed:
         print("\n".join(failure_table(failed, args.handover_steps)))
