@@ -14,8 +14,9 @@ set shows executing (:func:`support_coverage`): an adaptation step can only use 
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any, Protocol, runtime_checkable
 
 import gymnasium as gym
@@ -36,6 +37,7 @@ __all__ = [
     "is_task_list",
     "per_arm_tasks",
     "run_episode",
+    "seeded_torch_stream",
     "support_coverage",
 ]
 
@@ -157,6 +159,16 @@ class SupportSet:
         ).astype(np.float32)
 
 
+@contextmanager
+def seeded_torch_stream(seed: int | None) -> Iterator[None]:
+    """Inside the block torch's (CPU) random stream starts from ``seed`` (``None``: carries on unseeded); the caller's
+    stream is restored afterwards, so adapting with a seed is reproducible and leaves the caller's draws alone."""
+    with torch.random.fork_rng(devices=[]):
+        if seed is not None:
+            torch.manual_seed(seed)
+        yield
+
+
 def collect_support(
     model: Any, env: gym.Env, task: Instruction | Sequence[Instruction] | None, n_support: int, seed: int | None
 ) -> SupportSet:
@@ -180,9 +192,7 @@ def collect_support(
         raise ValueError(f"n_support must be >= 1 and at least one per task ({len(tasks)}), got {n_support}")
     shares = [n_support // len(tasks) + (index < n_support % len(tasks)) for index in range(len(tasks))]
     columns: dict[str, list] = {name: [] for name in SupportSet.__dataclass_fields__}
-    with torch.random.fork_rng(devices=[]):
-        if seed is not None:
-            torch.manual_seed(seed)
+    with seeded_torch_stream(seed):
         for index, (one_task, share) in enumerate(zip(tasks, shares)):
             if one_task is not None:
                 env.unwrapped.set_task(one_task)

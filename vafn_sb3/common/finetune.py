@@ -26,7 +26,7 @@ from stable_baselines3.common.utils import ConstantSchedule
 from stable_baselines3.common.vec_env import VecNormalize
 
 from vafn_gym.instructions import Instruction
-from vafn_sb3.common.adaptation import SupportSet, collect_support
+from vafn_sb3.common.adaptation import SupportSet, collect_support, seeded_torch_stream
 
 #: Support budget and number of adaptation steps used when ``adapt`` is called without them (MAML-SAC's defaults are
 #: set by its own class; ``evaluate_adaptation`` always passes both explicitly).
@@ -133,9 +133,7 @@ class FineTuneAdaptation:
         support = collect_support(self._support_policy(seed), env, task, n_support, seed)
         saved = self._snapshot()
         try:
-            with th.random.fork_rng(devices=[]):
-                if seed is not None:
-                    th.manual_seed(seed)
+            with seeded_torch_stream(seed):
                 self._logger = configure(folder=None, format_strings=[])
                 if self.finetune_sgd_lr is not None:
                     self._use_sgd(self.finetune_sgd_lr)

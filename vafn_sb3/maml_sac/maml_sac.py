@@ -48,7 +48,7 @@ from torch.func import vmap
 
 from vafn_gym.instructions import Instruction
 from vafn_gym.tasks import TaskSampler
-from vafn_sb3.common.adaptation import SupportSet, collect_support, is_task_list
+from vafn_sb3.common.adaptation import SupportSet, collect_support, is_task_list, seeded_torch_stream
 from vafn_sb3.common.serialization import AtomicSaveMixin
 from vafn_sb3.maml_sac.buffers import TaskRolloutBuffer
 from vafn_sb3.maml_sac.functional import inner_adapt, query_losses
@@ -562,9 +562,7 @@ class MAMLSAC(AtomicSaveMixin, SAC):
             if task is not None and not is_task_list(task):
                 task = Instruction.coerce(task)
             support = collect_support(self, env, task, n_support, seed)
-            with torch.random.fork_rng(devices=[]):
-                if seed is not None:
-                    torch.manual_seed(seed)
+            with seeded_torch_stream(seed):
                 actor_params, critic_params = self.adapted_parameters([support], k)[0]
             return AdaptedSACPolicy(self.policy, self.actor_distribution, actor_params, critic_params, support)
         finally:
