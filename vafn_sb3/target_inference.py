@@ -42,6 +42,7 @@ from vafn_gym.constants import (
 )
 from vafn_gym.controllers import PROBE_DIRECTIONS, trilaterate
 from vafn_gym.layout import ArmLayout
+from vafn_sb3.common.adaptation import seeded_torch_stream
 
 __all__ = ["ESTIMATOR_READINGS", "INFERENCE_MODES", "LearnedTargetEstimator", "TargetInferencePolicy",
            "collect_waypoint_readings"]
@@ -224,8 +225,7 @@ class LearnedTargetEstimator:
         self.hidden = tuple(int(size) for size in hidden)
         n_in = 4 * self.n_readings - 3
         sizes = [n_in, *self.hidden]
-        with torch.random.fork_rng():  # building an estimator leaves the caller's torch stream alone
-            torch.manual_seed(seed)
+        with seeded_torch_stream(seed):  # building an estimator leaves the caller's torch stream alone
             layers: list[nn.Module] = []
             for size_in, size_out in zip(sizes[:-1], sizes[1:]):
                 layers += [nn.Linear(size_in, size_out), nn.ReLU()]
