@@ -264,9 +264,13 @@ def figure_title(meta: dict[str, Any]) -> str:
             "mean over seeds ± 95 % CI")
 
 
-def replot(out: Path) -> Path:
-    """Redraw ``out/adaptation.png`` from the ``adaptation.csv`` and ``adaptation.json`` already there."""
+def replot(out: Path, title: str | None = None) -> Path:
+    """Redraw ``out/adaptation.png`` from the ``adaptation.csv`` and ``adaptation.json`` already there (``title``:
+    a new first line of the figure's title, also stored in ``adaptation.json``)."""
     meta = json.loads((out / "adaptation.json").read_text())
+    if title is not None:
+        meta["title"] = title
+        (out / "adaptation.json").write_text(json.dumps(meta, indent=2))
     rows = read_rows(out / "adaptation.csv")
     write_csv_rows(by_length_rows(rows), out / "adaptation_by_length.csv")
     curves = aggregate_adaptation(rows)
@@ -303,7 +307,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                              "not have (adding seeds to it); it must be evaluated as before")
     parser.add_argument("--workers", type=int, default=1, help="models evaluated in parallel (one thread each)")
     parser.add_argument("--out", type=Path, default=Path("results/adaptation"), help="output folder")
-    parser.add_argument("--title", default="", help="what this run is, put first in the figure's title")
+    parser.add_argument("--title", default=None,
+                        help="what this run is, put first in the figure's title (with --append or --replot: "
+                             "default the earlier run's)")
     parser.add_argument("--replot", action="store_true",
                         help="only redraw --out's adaptation.png and adaptation_by_length.csv from its "
                              "adaptation.csv (no evaluation)")
@@ -314,7 +320,7 @@ def main(argv: list[str] | None = None) -> None:
     """Evaluate every method's models and the references on the same held-out tasks; write CSV, summary, plot."""
     args = parse_args(argv)
     if args.replot:
-        print(replot(args.out))
+        print(replot(args.out, args.title))
         return
     torch.set_num_threads(1)
     methods = [Method.parse(fields) for fields in args.method]
@@ -328,7 +334,7 @@ def main(argv: list[str] | None = None) -> None:
                                      env_kwargs=args.env_kwargs)
     tasks = benchmark.test_tasks
     start = time.perf_counter()
-    kept, method_records = [], []
+    kept, method_records, title = [], [], args.title or ""
     if args.add_seeds and not args.append:
         raise SystemExit("--add-seeds adds seeds to the methods of an earlier run in --out: it needs --append")
     labels = {method.label for method in methods}
@@ -345,6 +351,7 @@ def main(argv: list[str] | None = None) -> None:
             raise SystemExit(f"--append: {args.out / 'adaptation.csv'} has other tasks, another --n-support or "
                              "another --support")
         method_records = [m for m in previous_meta["methods"] if m["label"] not in labels]
+        title = previous_meta.get("title", "") if args.title is None else args.title
         if args.add_seeds:
             earlier_models = earlier_seed_models(methods, previous_meta["methods"])
     rows = evaluate_references(args, tasks) + kept + evaluate_methods(methods, args, tasks)
@@ -354,7 +361,7 @@ def main(argv: list[str] | None = None) -> None:
     write_csv_rows(summary, args.out / "adaptation_summary.csv")
     write_csv_rows(by_length_rows(rows), args.out / "adaptation_by_length.csv")
     episodes = support_episodes(args, tasks)
-    meta = {"command": shlex.join(sys.argv), "title": args.title, "env": args.env, "env_kwargs": args.env_kwargs,
+    meta = {"command": shlex.join(sys.argv), "title": title, "env": args.env, "env_kwargs": args.env_kwargs,
             "test_lengths": [args.min_length, args.max_length], "n_tasks": len(tasks), "benchmark_seed": benchmark.seed,
             "n_support_steps": args.n_support, "support": args.support, "support_episodes_mean": episodes, "k": args.k,
             "methods": method_records + [{"label": m.label, "algo": m.algo,

@@ -139,6 +139,24 @@ def test_append_keeps_other_methods_and_refuses_other_tasks(study, tmp_path, mon
                        "--method", "c", "mtsac", str(models / "*.zip")])
 
 
+def test_title_is_kept_by_append_and_set_by_replot(study, tmp_path):
+    tiny(MTSAC, {}, 0, tmp_path / "mtsac_seed0.zip")
+    out = tmp_path / "out"
+    common = ["--max-length", "1", "--n-tasks", "1", "--k", "0", "--n-support", "8", "--out", str(out)]
+    study["main"]([*common, "--method", "a", "mtsac", str(tmp_path / "*.zip"), "--title", "first run"])
+    study["main"]([*common, "--method", "b", "mtsac", str(tmp_path / "*.zip"), "--append"])
+
+    def title() -> str:
+        return json.loads((out / "adaptation.json").read_text())["title"]
+
+    assert title() == "first run"
+    study["main"](["--replot", "--out", str(out), "--title", "150k steps"])
+    meta = json.loads((out / "adaptation.json").read_text())
+    assert meta["title"] == "150k steps" and study["figure_title"](meta).startswith("150k steps\n")
+    study["main"](["--replot", "--out", str(out)])
+    assert title() == "150k steps"
+
+
 def test_add_seeds_keeps_a_methods_earlier_seeds_and_refuses_another_evaluation(study, tmp_path):
     models = tmp_path / "models"
     models.mkdir()
