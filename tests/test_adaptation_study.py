@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from vafn_sb3 import MTSAC, SAC, LearnedTargetEstimator
@@ -198,3 +199,34 @@ def test_failures_after_adaptation_are_the_study_episodes(study, tmp_path, monke
     printed = capsys.readouterr().out
     assert printed.startswith(f"2 held-out instructions after 2 adaptation steps on 8 support transitions: success "
                               f"{success:.2f}, collision rate {collision:.2f}")
+
+
+@pytest.fixture(scope="module")
+def direction():
+    """benchmarks/adaptation_direction.py's namespace."""
+    return runpy.run_path(str(ROOT / "benchmarks" / "adaptation_direction.py"), run_name="adaptation_direction")
+
+
+def test_move_toward_measures_the_move_against_the_way_to_the_target(direction):
+    move_toward = direction["move_toward"]
+    start, target = np.zeros(3), np.array([0.2, 0.0, 0.0])
+    assert move_toward(start, np.array([0.1, 0.0, 0.0]), target) == pytest.approx((10.0, 1.0))
+    assert move_toward(start, np.array([0.0, 0.05, 0.0]), target) == pytest.approx((5.0, 0.0))
+    assert move_toward(start, np.array([-0.1, 0.0, 0.0]), target)[1] == pytest.approx(-1.0)
+    moved, cosine = move_toward(start, start, target)
+    assert moved == 0.0 and np.isnan(cosine)
+
+
+def test_direction_adapts_on_the_one_waypoint_tasks_and_needs_k_zero(direction, tmp_path):
+    tiny(MTSAC, {}, 0, tmp_path / "mtsac_seed0.zip")
+    common = [str(tmp_path / "*.zip"), "--max-length", "1", "--n-tasks", "2", "--n-support", "12"]
+    lines = direction["main"]([*common, "--k", "0", "1", "--out", str(tmp_path / "rows.csv")])
+    rows = list(csv.DictReader((tmp_path / "rows.csv").open()))
+    assert [r["k"] for r in rows] == ["0", "1", "0", "1"]  # two tasks, each unadapted then after one step
+    assert all(float(r["moved_cm"]) == 0.0 for r in rows if r["k"] == "0")
+    assert all(-1.0 <= float(r["cosine"]) <= 1.0 for r in rows if r["k"] == "1" and r["cosine"] != "nan")
+    assert lines[2].startswith("| K | final_cm") and len(lines) == 6
+    with pytest.raises(SystemExit, match="must include 0"):
+        direction["main"]([*common, "--k", "1"])
+    with pytest.raises(SystemExit, match="no model matches"):
+        direction["main"]([str(tmp_path / "missing*.zip")])

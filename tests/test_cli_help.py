@@ -15,7 +15,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 WITH_DEFAULTS = [
     "baselines", "env_throughput", "instruction_table", "maml_step_cost", "scripted_ceiling",
-    "learning", "adaptation", "transfer", "export_pretrained", "failures", "speech_invariance",
+    "learning", "adaptation", "adaptation_direction", "transfer", "export_pretrained", "failures", "speech_invariance",
 ]
 
 
