@@ -113,10 +113,15 @@ def main(argv: list[str] | None = None) -> list[str]:
         raise SystemExit("no one-waypoint instruction among the held-out tasks: raise --n-tasks")
     tasks = [benchmark.test_tasks[i] for i in indices]
     k_values = sorted(set(args.k))
+    models = {}
+    for path in paths:  # every file is read before any episode runs, so a bad one fails at once
+        try:
+            models[Path(path).name] = load_model(path, args.algo)[0]
+        except (ValueError, FileNotFoundError) as error:
+            raise SystemExit(str(error)) from None
     rows = []
-    for path in paths:
-        model, _ = load_model(path, args.algo)
-        rows += [{"model": Path(path).name, **row} for row in resting_points(
+    for name, model in models.items():
+        rows += [{"model": name, **row} for row in resting_points(
             model, args.env, args.env_kwargs, tasks, indices, k_values, args.n_support, args.seed)]
     if args.out is not None:
         with args.out.open("w", newline="") as handle:

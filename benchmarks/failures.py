@@ -72,7 +72,10 @@ def main() -> None:
     if args.pretrained is not None:
         model = load_pretrained(args.pretrained, env_id=args.env)
     else:
-        model, _ = load_model(args.model, args.algo)
+        try:
+            model, _ = load_model(args.model, args.algo)
+        except (ValueError, FileNotFoundError) as error:
+            raise SystemExit(str(error)) from None
     benchmark = InstructionBenchmark(args.env, args.min_length, args.max_length, n_test=args.n_test,
                                      env_kwargs=args.env_kwargs)
     if args.k == 0:

@@ -230,3 +230,13 @@ def test_direction_adapts_on_the_one_waypoint_tasks_and_needs_k_zero(direction, 
         direction["main"]([*common, "--k", "1"])
     with pytest.raises(SystemExit, match="no model matches"):
         direction["main"]([str(tmp_path / "missing*.zip")])
+    (tmp_path / "broken_seed1.zip").write_text("not a model")
+    with pytest.raises(SystemExit, match="broken_seed1.zip is not a saved model"):
+        direction["main"]([*common, "--k", "0"])
+
+
+def test_failures_names_a_file_that_is_not_a_model(tmp_path, monkeypatch):
+    (tmp_path / "broken.zip").write_text("not a model")
+    monkeypatch.setattr(sys, "argv", ["failures.py", str(tmp_path / "broken.zip")])
+    with pytest.raises(SystemExit, match="broken.zip is not a saved model"):
+        runpy.run_path(str(ROOT / "benchmarks" / "failures.py"), run_name="__main__")
