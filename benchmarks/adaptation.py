@@ -329,6 +329,12 @@ def main(argv: list[str] | None = None) -> None:
             LearnedTargetEstimator.load(args.target_estimator)
         except ValueError as error:
             raise SystemExit(f"--target-estimator: {error}") from None
+    for method in methods:  # likewise every model file, before any evaluation runs
+        for path in method.paths:
+            try:
+                load_model(path, method.algo)
+            except (ValueError, FileNotFoundError) as error:
+                raise SystemExit(f"--method {method.label}: {error}") from None
     args.out.mkdir(parents=True, exist_ok=True)
     benchmark = InstructionBenchmark(args.env, args.min_length, args.max_length, n_test=args.n_tasks,
                                      env_kwargs=args.env_kwargs)

@@ -124,6 +124,13 @@ def test_learned_inference_needs_a_readable_estimator(study, tmp_path):
         study["main"]([*method, "--target-estimator", str(tmp_path / "estimator.pt"), "--out", str(tmp_path / "out")])
 
 
+def test_a_file_that_is_not_a_model_stops_the_study_before_it_evaluates(study, tmp_path):
+    (tmp_path / "broken_seed0.zip").write_text("not a model")
+    with pytest.raises(SystemExit, match="--method m: .*broken_seed0.zip is not a saved model"):
+        study["main"](["--method", "m", "mtsac", str(tmp_path / "broken_seed*.zip"), "--out", str(tmp_path / "out")])
+    assert not (tmp_path / "out").exists()
+
+
 def test_append_keeps_other_methods_and_refuses_other_tasks(study, tmp_path, monkeypatch):
     models = tmp_path / "models"
     models.mkdir()
