@@ -101,8 +101,9 @@ def main(argv: list[str] | None = None) -> list[str]:
     parser.add_argument("--seed", type=int, default=0, help="base seed, as adaptation.py's")
     parser.add_argument("--out", type=Path, default=None, help="also write every episode's row to this CSV")
     args = parser.parse_args(argv)
-    if 0 not in args.k:
-        raise SystemExit("--k must include 0: the unadapted resting point is what the others are measured from")
+    if 0 not in args.k or min(args.k) < 0:
+        raise SystemExit(f"--k must be >= 0 and include 0 (the unadapted resting point the others are measured "
+                         f"from), got {args.k}")
     paths = sorted(glob.glob(args.models))
     if not paths:
         raise SystemExit(f"no model matches {args.models!r}")
@@ -116,9 +117,12 @@ def main(argv: list[str] | None = None) -> list[str]:
     models = {}
     for path in paths:  # every file is read before any episode runs, so a bad one fails at once
         try:
-            models[Path(path).name] = load_model(path, args.algo)[0]
+            model = load_model(path, args.algo)[0]
         except (ValueError, FileNotFoundError) as error:
             raise SystemExit(str(error)) from None
+        if max(k_values) > 0 and not callable(getattr(model, "adapt", None)):
+            raise SystemExit(f"{path}: {type(model).__name__} has no adapt(); use --k 0")
+        models[Path(path).name] = model
     rows = []
     for name, model in models.items():
         rows += [{"model": name, **row} for row in resting_points(

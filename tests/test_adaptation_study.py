@@ -233,8 +233,9 @@ def test_direction_adapts_on_the_one_waypoint_tasks_and_needs_k_zero(direction, 
     assert all(float(r["moved_cm"]) == 0.0 for r in rows if r["k"] == "0")
     assert all(-1.0 <= float(r["cosine"]) <= 1.0 for r in rows if r["k"] == "1" and r["cosine"] != "nan")
     assert lines[2].startswith("| K | final_cm") and len(lines) == 6
-    with pytest.raises(SystemExit, match="must include 0"):
-        direction["main"]([*common, "--k", "1"])
+    for k in (["1"], ["0", "-1"]):
+        with pytest.raises(SystemExit, match="must be >= 0 and include 0"):
+            direction["main"]([*common, "--k", *k])
     with pytest.raises(SystemExit, match="no model matches"):
         direction["main"]([str(tmp_path / "missing*.zip")])
     (tmp_path / "broken_seed1.zip").write_text("not a model")
