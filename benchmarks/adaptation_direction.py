@@ -2,11 +2,11 @@
 
     OMP_NUM_THREADS=1 python benchmarks/adaptation_direction.py 'runs/hidden/mtsac/*_seed*.zip' --k 0 1 10 50
 
-On the one-waypoint instructions among the adaptation study's held-out tasks (``--max-length 4 --n-tasks 15`` are
-the study's), each model adapts as ``benchmarks/adaptation.py`` does (the same support seeds and first evaluation
-episode) and runs one deterministic episode per K. Per K it reports where the active arm ends: its distance to the
-hidden target, how far that end point moved from the unadapted policy's (K = 0), and the cosine between that move and
-the direction from the unadapted end point to the target (1: straight at the target; 0: sideways). A success rate
+Each model runs the adaptation study's own episodes (``evaluate_adaptation`` with one episode per task and K, as
+``benchmarks/adaptation.py`` does; ``--max-length 4 --n-tasks 15`` are the study's tasks), and on the one-waypoint
+instructions among them, per K, it reports where the active arm ends: its distance to the hidden target, how far that
+end point moved from the unadapted policy's (K = 0), and the cosine between that move and the direction from the
+unadapted end point to the target (1: straight at the target; 0: sideways). A success rate
 near zero says nothing about whether the inner steps point the right way; this does. Prints a Markdown table (mean
 over models of each model's mean over tasks, ± 95 % Student-t half width) and writes every episode with ``--out``.
 """
@@ -28,9 +28,9 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import vafn_gym  # noqa: E402, F401  (registers the env IDs)
-from vafn_gym import InstructionBenchmark, run_episode  # noqa: E402
+from vafn_gym import InstructionBenchmark  # noqa: E402
 from vafn_gym.benchmarks import confidence_half_width  # noqa: E402
-from vafn_sb3.common.adaptation import EVAL_SEED_OFFSET  # noqa: E402
+from vafn_sb3.common.adaptation import evaluate_adaptation  # noqa: E402
 from vafn_sb3.loading import load_model  # noqa: E402
 
 COLUMNS = ("final_cm", "moved_cm", "cosine", "success")
@@ -45,25 +45,30 @@ def move_toward(unadapted_end: np.ndarray, end: np.ndarray, target: np.ndarray) 
     return 100.0 * moved, float(move @ wanted / (moved * np.linalg.norm(wanted)))
 
 
-def resting_points(model, env_id: str, env_kwargs: dict, tasks: list, task_indices: list[int], k_values: list[int],
-                   n_support: int, seed: int) -> list[dict]:
-    """One deterministic episode per (task, K) after adapting on the study's support set; where the active arm ends."""
-    rows = []
-    for task, index in zip(tasks, task_indices):
-        arm = task.arms[0]
-        unadapted_end = None
-        for k in k_values:
-            env = gym.make(env_id, **env_kwargs)
-            policy = model if k == 0 else model.adapt(env, task=task, n_support=n_support, k=k, seed=seed + index)
-            env.unwrapped.set_task(task)
-            episode = run_episode(policy, env, seed=seed + EVAL_SEED_OFFSET + index)
-            end, target = np.array(env.unwrapped.arms[arm].ee_position), np.asarray(env.unwrapped.task.goal(arm))
-            env.close()
-            unadapted_end = end if k == 0 else unadapted_end
-            moved, cosine = move_toward(unadapted_end, end, target) if k else (0.0, float("nan"))
-            rows.append({"task": task.to_code(), "k": k, "success": episode["success"],
-                         "final_cm": 100.0 * float(np.linalg.norm(end - target)), "moved_cm": moved, "cosine": cosine})
-    return rows
+def first_arm_at_rest(env: gym.Env) -> dict:
+    """Where the instruction's first arm came to rest and its target: an ``evaluate_adaptation`` episode-end hook."""
+    arm = env.unwrapped.instruction.arms[0]
+    return {"end": np.array(env.unwrapped.arms[arm].ee_position), "target": np.asarray(env.unwrapped.task.goal(arm))}
+
+
+def resting_points(model, env_id: str, env_kwargs: dict, tasks: list, k_values: list[int], n_support: int,
+                   seed: int) -> list[dict]:
+    """The study's episodes on ``tasks`` (``evaluate_adaptation``, one per task and K); for each one-waypoint task,
+    where its arm ended at each K and how that moved from where it ended at K = 0."""
+    rows = evaluate_adaptation(model, env_id, tasks, n_support, k_values, n_eval_episodes=1, seed=seed,
+                               env_kwargs=env_kwargs, keep_episodes=True, at_episode_end=first_arm_at_rest)
+    unadapted = {row["task_index"]: row["episodes"][0]["end"] for row in rows if row["k"] == 0}
+    points = []
+    for row in rows:
+        if len(tasks[row["task_index"]].arms) != 1:
+            continue  # a longer task's episodes may end at another waypoint: their end points are not comparable
+        (episode,) = row["episodes"]
+        moved, cosine = (move_toward(unadapted[row["task_index"]], episode["end"], episode["target"]) if row["k"]
+                         else (0.0, float("nan")))
+        points.append({"task": row["task"], "k": row["k"], "success": episode["success"],
+                       "final_cm": 100.0 * float(np.linalg.norm(episode["end"] - episode["target"])),
+                       "moved_cm": moved, "cosine": cosine})
+    return points
 
 
 def summary_table(rows: list[dict], k_values: list[int]) -> list[str]:
@@ -109,10 +114,10 @@ def main(argv: list[str] | None = None) -> list[str]:
         raise SystemExit(f"no model matches {args.models!r}")
     torch.set_num_threads(1)
     benchmark = InstructionBenchmark(args.env, 1, args.max_length, n_test=args.n_tasks, env_kwargs=args.env_kwargs)
-    indices = [i for i, task in enumerate(benchmark.test_tasks) if len(task.arms) == 1]
-    if not indices:
+    tasks = benchmark.test_tasks
+    n_one_waypoint = sum(len(task.arms) == 1 for task in tasks)
+    if not n_one_waypoint:
         raise SystemExit("no one-waypoint instruction among the held-out tasks: raise --n-tasks")
-    tasks = [benchmark.test_tasks[i] for i in indices]
     k_values = sorted(set(args.k))
     models = {}
     for path in paths:  # every file is read before any episode runs, so a bad one fails at once
@@ -126,14 +131,14 @@ def main(argv: list[str] | None = None) -> list[str]:
     rows = []
     for name, model in models.items():
         rows += [{"model": name, **row} for row in resting_points(
-            model, args.env, args.env_kwargs, tasks, indices, k_values, args.n_support, args.seed)]
+            model, args.env, args.env_kwargs, tasks, k_values, args.n_support, args.seed)]
     if args.out is not None:
         with args.out.open("w", newline="") as handle:
             writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
             writer.writeheader()
             writer.writerows(rows)
-    lines = [f"{len(tasks)} one-waypoint held-out tasks, {len(paths)} models, support {args.n_support} env steps", "",
-             *summary_table(rows, k_values)]
+    lines = [f"{n_one_waypoint} one-waypoint held-out tasks, {len(paths)} models, support {args.n_support} env steps",
+             "", *summary_table(rows, k_values)]
     print("\n".join(lines))
     return lines
 

@@ -276,8 +276,13 @@ def test_evaluate_adaptation_rows(model):
     assert all(np.isnan(r["support_arms"]) for r in rows if r["k"] == 0)
     assert all("episodes" not in r for r in rows)
     # keep_episodes: the same rows, each with its evaluation episodes (where and how each one ended)
+    # the episode-end hook is called once per episode, with the env, and its dict joins that episode's row
+    calls = iter(range(1, 100))
     kept = evaluate_adaptation(model, ENV_ID, tasks, n_support=16, k_values=[0, 2], n_eval_episodes=1,
-                               env_kwargs=ENV_KWARGS, keep_episodes=True)
+                               env_kwargs=ENV_KWARGS, keep_episodes=True,
+                               at_episode_end=lambda env: {"call": next(calls), "arms": len(env.unwrapped.arms)})
+    assert [row["episodes"][0]["call"] for row in kept] == list(range(1, len(kept) + 1))
+    assert all(row["episodes"][0]["arms"] == 3 for row in kept)
     timed = ("episodes", "adapt_time_s", "support_arms")  # support_arms is NaN at K = 0 (checked above)
     assert [{k: v for k, v in r.items() if k not in timed} for r in kept] == [
         {k: v for k, v in r.items() if k not in timed} for r in rows]

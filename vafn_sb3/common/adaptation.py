@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Protocol, runtime_checkable
 
 import gymnasium as gym
@@ -260,6 +260,7 @@ def evaluate_adaptation(
     env_kwargs: dict | None = None,
     support: str = "episodes",
     keep_episodes: bool = False,
+    at_episode_end: Callable[[gym.Env], dict] | None = None,
 ) -> list[dict]:
     """Adaptation curve of ``model``: deterministic evaluation after ``k`` adaptation steps, per task and ``k``.
 
@@ -279,6 +280,8 @@ def evaluate_adaptation(
     :param support: one of :data:`SUPPORT_MODES`: what the support set of each task holds.
     :param keep_episodes: also return each row's evaluation episodes (:func:`run_episode` rows: outcome, failing arm,
         steps after the last waypoint) under ``episodes``.
+    :param at_episode_end: with ``keep_episodes``: called with the env as each evaluation episode ends (before the next
+        reset); its dict is added to that episode's row (e.g. where an arm came to rest).
     :return: one row per (task, k): ``task_index``, ``task`` (code), ``k``, ``n_support``, ``return_mean``,
         ``success_rate``, ``collision_rate``, ``adapt_time_s`` (wall time of ``adapt``, support collection included),
         ``support_arms`` (:func:`support_coverage` of the adapted policy's ``support``; NaN where there is none).
@@ -310,10 +313,12 @@ def evaluate_adaptation(
                 coverage = (support_coverage(support_set, task, len(env.unwrapped.arms))
                             if isinstance(support_set, SupportSet) else float("nan"))
                 env.unwrapped.set_task(task)
-                episodes = [
-                    run_episode(policy, env, seed=seed + EVAL_SEED_OFFSET + task_index * n_eval_episodes + episode)
-                    for episode in range(n_eval_episodes)
-                ]
+                episodes = []
+                for episode in range(n_eval_episodes):
+                    episodes.append(run_episode(
+                        policy, env, seed=seed + EVAL_SEED_OFFSET + task_index * n_eval_episodes + episode))
+                    if at_episode_end is not None:
+                        episodes[-1].update(at_episode_end(env))
                 rows.append(
                     {
                         "task_index": task_index,
