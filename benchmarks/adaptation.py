@@ -14,7 +14,10 @@ zero-shot run at K = 0 only (``zero-shot`` as the fifth field). ``infer-probe`` 
 targets through :class:`vafn_sb3.target_inference.TargetInferencePolicy` (probe moves, then trilateration inside the
 episode; ``infer-passive``: without the probe moves; ``infer-learned``: probe moves, then the network of
 ``--target-estimator`` (default: the packaged one) instead of trilateration; ``infer-none``: the centre of the shared
-region as every goal), also at K = 0 only. The scripted controller (the ceiling) and a uniform random policy (the
+region as every goal), also at K = 0 only. ``infer-gradient`` makes the probe moves, then infers each target by K
+gradient steps of the ``--gradient-estimator`` (default: the packaged meta-learned one) on the waypoint's first
+readings (:class:`vafn_sb3.GradientInferencePolicy`): it runs at every K and collects no support set, its adaptation
+data are the probe moves inside the episode. The scripted controller (the ceiling) and a uniform random policy (the
 floor) run on the same tasks.
 
 Writes to ``--out``: ``adaptation.csv`` (one row per method, seed, task and K), ``adaptation_summary.csv`` (per method
@@ -68,7 +71,13 @@ from vafn_sb3.common.adaptation_curves import (  # noqa: E402
     aggregate_adaptation,
     plot_adaptation,
 )
-from vafn_sb3.target_inference import INFERENCE_MODES, LearnedTargetEstimator, TargetInferencePolicy  # noqa: E402
+from vafn_sb3.gradient_estimator import GradientTargetEstimator  # noqa: E402
+from vafn_sb3.target_inference import (  # noqa: E402
+    INFERENCE_MODES,
+    GradientInferencePolicy,
+    LearnedTargetEstimator,
+    TargetInferencePolicy,
+)
 from vafn_sb3.loading import load_model  # noqa: E402
 from zoo.registry import register_algorithms  # noqa: E402
 from zoo.study import support_budget  # noqa: E402
@@ -78,6 +87,9 @@ METRICS = tuple(ADAPTATION_METRICS)
 #: How a method may be evaluated instead of adapting over K (all K = 0 only): as it is, or a goal-observing model run
 #: through TargetInferencePolicy with one of its inference settings ("infer-<setting>").
 MODES = ("zero-shot", *(f"infer-{inference}" for inference in INFERENCE_MODES))
+#: Inference settings that read an estimator file: the flag (its ``args`` attribute) and the estimator class.
+ESTIMATOR_FLAGS = {"learned": ("target_estimator", LearnedTargetEstimator),
+                   "gradient": ("gradient_estimator", GradientTargetEstimator)}
 #: The reference policies every study includes (K = 0, no training).
 REFERENCES = ("scripted", "random")
 
@@ -111,7 +123,8 @@ class Method:
         paths = sorted(Path(p) for p in glob.glob(pattern))
         if not paths:
             raise ValueError(f"{label}: no model matches {pattern!r}")
-        return cls(label, algo, paths, env_kwargs, zero_shot=mode is not None,
+        # infer-gradient adapts over K (its gradient steps); every other mode is evaluated at K = 0 only
+        return cls(label, algo, paths, env_kwargs, zero_shot=mode not in (None, "infer-gradient"),
                    target_inference=None if mode in (None, "zero-shot") else mode.removeprefix("infer-"))
 
 
@@ -142,6 +155,14 @@ def earlier_seed_models(methods: list[Method], previous: list[dict[str, Any]]) -
     return earlier_models
 
 
+def estimator_of(method: Method, args: argparse.Namespace) -> Any:
+    """The estimator a target-inference method reads (from its flag's file, or the packaged one), or None."""
+    if method.target_inference not in ESTIMATOR_FLAGS:
+        return None
+    flag, estimator_class = ESTIMATOR_FLAGS[method.target_inference]
+    return estimator_class.load(getattr(args, flag))
+
+
 def evaluate_model(method: Method, path: Path, args: argparse.Namespace, tasks: list) -> list[dict]:
     """Adaptation rows of one saved model of ``method`` (K = 0 only when the method is zero-shot)."""
     torch.set_num_threads(1)
@@ -149,9 +170,10 @@ def evaluate_model(method: Method, path: Path, args: argparse.Namespace, tasks: 
     model, _ = load_model(path, method.algo)  # an SB3 zip or a packaged weights-only policy
     env_kwargs = {**args.env_kwargs, **method.env_kwargs}
     if method.target_inference is not None:
-        estimator = LearnedTargetEstimator.load(args.target_estimator) if method.target_inference == "learned" else None
+        estimator = estimator_of(method, args)
+        policy_class = GradientInferencePolicy if method.target_inference == "gradient" else TargetInferencePolicy
         env = gym.make(args.env, **env_kwargs)
-        model = TargetInferencePolicy.for_env(model, env, inference=method.target_inference, estimator=estimator)
+        model = policy_class.for_env(model, env, inference=method.target_inference, estimator=estimator)
         env.close()
     rows = evaluate_adaptation(model, args.env, tasks, n_support=args.n_support,
                                k_values=[0] if method.zero_shot else args.k, n_eval_episodes=args.n_eval_episodes,
@@ -277,6 +299,14 @@ def replot(out: Path, title: str | None = None) -> Path:
     return plot_adaptation(curves, out / "adaptation.png", figure_title(meta), references=REFERENCES)
 
 
+def estimator_record(method: Method, args: argparse.Namespace) -> dict[str, str]:
+    """``{flag: file}`` of the estimator a target-inference method read (``"packaged"``: the default), else ``{}``."""
+    if method.target_inference not in ESTIMATOR_FLAGS:
+        return {}
+    flag = ESTIMATOR_FLAGS[method.target_inference][0]
+    return {flag: str(getattr(args, flag) or "packaged")}
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """Command-line flags."""
     parser = argparse.ArgumentParser(
@@ -289,6 +319,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--target-estimator", type=Path, default=None,
                         help="LearnedTargetEstimator file of infer-learned methods (benchmarks/target_estimator.py; "
                              "None: the packaged estimator)")
+    parser.add_argument("--gradient-estimator", type=Path, default=None,
+                        help="GradientTargetEstimator file of infer-gradient methods (benchmarks/target_estimator.py "
+                             "--estimator gradient; None: the packaged estimator)")
     parser.add_argument("--min-length", type=int, default=1, help="shortest test instruction")
     parser.add_argument("--max-length", type=int, default=4, help="longest test instruction")
     parser.add_argument("--n-tasks", type=int, default=30, help="held-out test instructions")
@@ -324,11 +357,12 @@ def main(argv: list[str] | None = None) -> None:
         return
     torch.set_num_threads(1)
     methods = [Method.parse(fields) for fields in args.method]
-    if any(m.target_inference == "learned" for m in methods):
+    for method in methods:
         try:  # a bad file fails here, in one line, not in every worker
-            LearnedTargetEstimator.load(args.target_estimator)
+            estimator_of(method, args)
         except ValueError as error:
-            raise SystemExit(f"--target-estimator: {error}") from None
+            flag = ESTIMATOR_FLAGS[method.target_inference][0].replace("_", "-")
+            raise SystemExit(f"--{flag}: {error}") from None
     for method in methods:  # likewise every model file, before any evaluation runs
         for path in method.paths:
             try:
@@ -374,8 +408,7 @@ def main(argv: list[str] | None = None) -> None:
                                           "models": earlier_models.get(m.label, []) + [str(p) for p in m.paths],
                                           "env_kwargs": m.env_kwargs, "zero_shot": m.zero_shot,
                                           "target_inference": m.target_inference,
-                                          **({"target_estimator": str(args.target_estimator or "packaged")}
-                                             if m.target_inference == "learned" else {})} for m in methods],
+                                          **estimator_record(m, args)} for m in methods],
             "eval_wall_s": round(time.perf_counter() - start, 1), "summary": summary}
     (args.out / "adaptation.json").write_text(json.dumps(meta, indent=2))
     title = figure_title(meta)

@@ -11,6 +11,13 @@ same collection on the benchmark's held-out test instructions measures the estim
 the same readings. Writes ``--out/target_estimator_seed<N>.pt`` (for ``benchmarks/adaptation.py --target-estimator``
 and ``zoo/online_control.py --infer-targets learned --target-estimator``) and ``--out/target_estimator.json`` (errors,
 sizes, CPU times, the command); prints a Markdown table. Never asserts a number.
+
+``--estimator gradient`` meta-trains a :class:`vafn_sb3.GradientTargetEstimator` per seed instead (a reading model
+whose 3-number context adapts by ``--steps`` gradient steps; files ``gradient_estimator_seed<N>.pt`` and
+``gradient_estimator.json``, for ``benchmarks/adaptation.py --gradient-estimator``), and ``--estimator gradient-plain``
+its baseline without meta-learning (``gradient_plain_estimator_*``); both report the held-out error after each
+``--report-k`` steps. The readings are saved as ``--out/readings.npz``; ``--readings`` reuses such a file instead of
+collecting again (it must come from the same env, model and task counts: its command is stored beside it).
 """
 
 from __future__ import annotations
@@ -31,13 +38,21 @@ import torch  # noqa: E402
 
 from vafn_gym import InstructionBenchmark, trilaterate  # noqa: E402
 from vafn_gym.constants import SUCCESS_TOLERANCE  # noqa: E402
-from vafn_sb3 import LearnedTargetEstimator, collect_waypoint_readings, load_pretrained  # noqa: E402
+from vafn_sb3 import (  # noqa: E402
+    GradientTargetEstimator,
+    LearnedTargetEstimator,
+    collect_waypoint_readings,
+    load_pretrained,
+)
 from vafn_sb3.loading import load_model  # noqa: E402
 from vafn_sb3.target_inference import ESTIMATOR_READINGS  # noqa: E402
 from zoo.registry import register_algorithms  # noqa: E402
 
 #: Reset seeds of the collection episodes (train and test episodes never share one).
 TRAIN_EPISODE_SEED, TEST_EPISODE_SEED = 0, 500_000
+#: ``--estimator`` kinds: file prefix and default hidden sizes of each.
+ESTIMATORS = {"regression": ("target_estimator", [256, 256]), "gradient": ("gradient_estimator", [128, 128]),
+              "gradient-plain": ("gradient_plain_estimator", [128, 128])}
 
 
 def error_stats(estimates: np.ndarray, targets: np.ndarray) -> dict[str, float]:
@@ -56,6 +71,34 @@ def trilaterated(readings: dict[str, np.ndarray]) -> np.ndarray:
     rows = [trilaterate(list(points), list(distances)) for points, distances in
             zip(readings["points"], readings["distances"])]
     return np.array([np.full(3, np.nan) if row is None else row for row in rows])
+
+
+def collect_or_load(args: argparse.Namespace, model: Any) -> tuple[dict, dict, float | None]:
+    """Train and test readings: from ``--readings`` (no collection CPU time), or collected and saved to ``--out``."""
+    if args.readings is not None:
+        try:
+            with np.load(args.readings) as saved:
+                split = {name: {key.split("/", 1)[1]: saved[key] for key in saved.files if key.startswith(name + "/")}
+                         for name in ("train", "test")}
+            if any(set(split[name]) != {"points", "distances", "targets", "arms"} for name in split):
+                raise ValueError("it lacks train/ or test/ points, distances, targets and arms")
+        except (OSError, ValueError) as error:
+            raise SystemExit(f"--readings {args.readings}: not a readings file of this benchmark ({error})") from None
+        return split["train"], split["test"], None
+    benchmark = InstructionBenchmark(args.env, max_length=args.max_length, n_test=args.test_tasks,
+                                     env_kwargs=args.env_kwargs, n_train=args.train_tasks)
+    env = benchmark.make_env()
+    try:
+        start = time.process_time()
+        train = collect_waypoint_readings(model, env, benchmark.train_tasks, TRAIN_EPISODE_SEED, args.n_readings)
+        test = collect_waypoint_readings(model, env, benchmark.test_tasks, TEST_EPISODE_SEED, args.n_readings)
+        collect_cpu_s = time.process_time() - start
+    finally:
+        env.close()
+    splits = {"train": train, "test": test}
+    np.savez(args.out / "readings.npz",
+             **{f"{name}/{key}": value for name, readings in splits.items() for key, value in readings.items()})
+    return train, test, collect_cpu_s
 
 
 def goal_policy(args: argparse.Namespace) -> Any:
@@ -81,7 +124,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--max-length", type=int, default=10,
                         help="longest instruction (long ones give later waypoints, from arms that have moved a lot)")
     parser.add_argument("--n-readings", type=int, default=ESTIMATOR_READINGS, help="readings the estimator reads")
-    parser.add_argument("--hidden", type=int, nargs="+", default=[256, 256], help="hidden layer sizes")
+    parser.add_argument("--estimator", choices=list(ESTIMATORS), default="regression",
+                        help="what to train: the regression network, the meta-learned gradient estimator, or its "
+                             "baseline without meta-learning")
+    parser.add_argument("--steps", type=int, default=20, help="gradient steps the gradient estimators train for")
+    parser.add_argument("--report-k", type=int, nargs="+", default=[0, 1, 2, 5, 10, 20, 50],
+                        help="gradient steps at which the gradient estimators' held-out error is reported")
+    parser.add_argument("--readings", type=Path, default=None,
+                        help="readings.npz of an earlier run to train on instead of collecting")
+    parser.add_argument("--hidden", type=int, nargs="+", default=None,
+                        help="hidden layer sizes (None: 256 256 for regression, 128 128 for the gradient estimators)")
     parser.add_argument("--epochs", type=int, default=200, help="passes over the training readings")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="one estimator per seed (initial weights)")
     parser.add_argument("--out", type=Path, default=Path("runs/target_estimator"), help="output folder")
@@ -90,53 +142,71 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         parser.error("--train-tasks and --test-tasks must be >= 1")
     if args.n_readings < 4:
         parser.error("--n-readings must be at least 4 (a point in space needs four distances)")
+    if args.steps < 0 or min(args.report_k) < 0:
+        parser.error("--steps and --report-k must be >= 0")
+    prefix, default_hidden = ESTIMATORS[args.estimator]
+    args.hidden = args.hidden or default_hidden
     torch.set_num_threads(1)
-    try:  # before the collection, so that a bad --model fails in seconds
-        model = goal_policy(args)
-    except (ValueError, FileNotFoundError) as error:
-        parser.error(f"--model: {error}")
+    model = None
+    if args.readings is None:
+        try:  # before the collection, so that a bad --model fails in seconds
+            model = goal_policy(args)
+        except (ValueError, FileNotFoundError) as error:
+            parser.error(f"--model: {error}")
     args.out.mkdir(parents=True, exist_ok=True)
-
-    benchmark = InstructionBenchmark(args.env, max_length=args.max_length, n_test=args.test_tasks,
-                                     env_kwargs=args.env_kwargs, n_train=args.train_tasks)
-    env = benchmark.make_env()
-    try:
-        start = time.process_time()
-        train = collect_waypoint_readings(model, env, benchmark.train_tasks, TRAIN_EPISODE_SEED, args.n_readings)
-        test = collect_waypoint_readings(model, env, benchmark.test_tasks, TEST_EPISODE_SEED, args.n_readings)
-        collect_cpu_s = time.process_time() - start
-    finally:
-        env.close()
+    train, test, collect_cpu_s = collect_or_load(args, model)
     report: dict[str, Any] = {
         "command": shlex.join(sys.argv), "env": args.env, "env_kwargs": args.env_kwargs,
         "model": str(args.model or "pretrained mappo (VAFN/ThreeArmReachGoal-v1)"), "max_length": args.max_length,
         "train_tasks": args.train_tasks, "test_tasks": args.test_tasks, "train_readings": len(train["points"]),
-        "test_readings": len(test["points"]), "n_readings": args.n_readings, "hidden": args.hidden,
-        "epochs": args.epochs,
-        "collect_cpu_s": round(collect_cpu_s, 1),
+        "test_readings": len(test["points"]), "n_readings": args.n_readings, "estimator": args.estimator,
+        "hidden": args.hidden, "epochs": args.epochs, "readings": str(args.readings or args.out / "readings.npz"),
+        "collect_cpu_s": None if collect_cpu_s is None else round(collect_cpu_s, 1),
         "trilateration": {"train": error_stats(trilaterated(train), train["targets"]),
                           "test": error_stats(trilaterated(test), test["targets"])},
         "learned": {},
     }
+    gradient = args.estimator != "regression"
+    if gradient:
+        report["steps"] = args.steps
     for seed in args.seeds:
-        estimator = LearnedTargetEstimator(args.n_readings, args.hidden, seed=seed)
         start = time.process_time()
-        losses = estimator.fit(train["points"], train["distances"], train["targets"], epochs=args.epochs, seed=seed)
+        if gradient:
+            estimator = GradientTargetEstimator(args.n_readings, args.hidden, steps=args.steps, seed=seed)
+            losses = estimator.fit(train["points"], train["distances"], train["targets"],
+                                   meta=args.estimator == "gradient", epochs=args.epochs, seed=seed)
+        else:
+            estimator = LearnedTargetEstimator(args.n_readings, args.hidden, seed=seed)
+            losses = estimator.fit(train["points"], train["distances"], train["targets"], epochs=args.epochs, seed=seed)
         fit_cpu_s = time.process_time() - start
-        estimator.save(args.out / f"target_estimator_seed{seed}.pt")
+        estimator.save(args.out / f"{prefix}_seed{seed}.pt")
         report["learned"][str(seed)] = {
             "train": error_stats(estimator.predict(train["points"], train["distances"]), train["targets"]),
             "test": error_stats(estimator.predict(test["points"], test["distances"]), test["targets"]),
             "final_loss": losses[-1], "fit_cpu_s": round(fit_cpu_s, 1),
         }
-    (args.out / "target_estimator.json").write_text(json.dumps(report, indent=2))
+        if gradient:
+            report["learned"][str(seed)]["test_by_k"] = {
+                str(k): error_stats(estimator.predict(test["points"], test["distances"], steps=k), test["targets"])
+                for k in args.report_k}
+    (args.out / f"{prefix}.json").write_text(json.dumps(report, indent=2))
 
+    if gradient:
+        print(f"held-out error after K gradient steps ({args.estimator}, trained for {args.steps}): median cm, "
+              f"share within the success tolerance\n")
+        print("| seed | " + " | ".join(f"K = {k}" for k in args.report_k) + " |")
+        print("|---|" + "---|" * len(args.report_k))
+        for seed, entry in report["learned"].items():
+            cells = [f"{stats['median_cm']:.2f}, {stats['within_tolerance']:.3f}"
+                     for stats in entry["test_by_k"].values()]
+            print(f"| {seed} | {' | '.join(cells)} |")
+        print()
     print(f"{report['train_readings']} training waypoints ({args.train_tasks} train-split instructions), "
           f"{report['test_readings']} held-out waypoints ({args.test_tasks} test instructions); errors in cm\n")
     print("| estimator | split | median | 90th pct | max | within 1 cm | within the success tolerance |")
     print("|---|---|---|---|---|---|---|")
     rows = [("trilateration", report["trilateration"])]
-    rows += [(f"learned, seed {seed}", entry) for seed, entry in report["learned"].items()]
+    rows += [(f"{args.estimator}, seed {seed}", entry) for seed, entry in report["learned"].items()]
     for name, entry in rows:
         for split in ("train", "test"):
             stats = entry[split]

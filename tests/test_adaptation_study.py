@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vafn_sb3 import MTSAC, SAC, LearnedTargetEstimator
+from vafn_sb3 import MTSAC, SAC, GradientTargetEstimator, LearnedTargetEstimator
 
 ROOT = Path(__file__).resolve().parents[1]
 HIDDEN = "VAFN/ThreeArmReachHidden-v1"
@@ -84,13 +84,16 @@ def test_study_end_to_end(study, tmp_path, monkeypatch, workers):
     tiny(SAC, {"history": 2}, 0, models / "sac_seed0.zip")
     tiny(SAC, {"observe_goal": True}, 0, models / "goal_seed0.zip")
     LearnedTargetEstimator(n_readings=4, hidden=(8,)).save(models / "estimator.pt")  # untrained: only the plumbing
+    GradientTargetEstimator(hidden=(8,), steps=2).save(models / "gradient.pt")
     out = tmp_path / "out"
     argv = ["adaptation.py", "--max-length", "1", "--n-tasks", "2", "--k", "0", "1", "--n-support", "12",
             "--method", "mtsac", "mtsac", str(models / "mtsac_seed*.zip"),
             "--method", "history", "sac", str(models / "sac_seed*.zip"), '{"history": 2}', "zero-shot",
             "--method", "inferred", "sac", str(models / "goal_seed*.zip"), "infer-passive",
             "--method", "learned", "sac", str(models / "goal_seed*.zip"), "infer-learned",
-            "--target-estimator", str(models / "estimator.pt"), "--workers", str(workers), "--out", str(out)]
+            "--method", "gradient", "sac", str(models / "goal_seed*.zip"), "infer-gradient",
+            "--target-estimator", str(models / "estimator.pt"), "--gradient-estimator", str(models / "gradient.pt"),
+            "--workers", str(workers), "--out", str(out)]
     if workers == 1:
         monkeypatch.setattr(sys, "argv", argv)
         study["main"](argv[1:])
@@ -99,9 +102,10 @@ def test_study_end_to_end(study, tmp_path, monkeypatch, workers):
                        capture_output=True)
     with (out / "adaptation.csv").open() as handle:
         rows = list(csv.DictReader(handle))
-    methods = ("scripted", "random", "mtsac", "history", "inferred", "learned")
+    methods = ("scripted", "random", "mtsac", "history", "inferred", "learned", "gradient")
     counts = {m: sum(1 for r in rows if r["method"] == m) for m in methods}
-    assert counts == {"scripted": 2, "random": 2, "mtsac": 2 * 2 * 2, "history": 2, "inferred": 2, "learned": 2}
+    assert counts == {"scripted": 2, "random": 2, "mtsac": 2 * 2 * 2, "history": 2, "inferred": 2, "learned": 2,
+                      "gradient": 2 * 2}  # gradient inference runs at every K
     assert all(float(r["success_rate"]) == 1.0 for r in rows if r["method"] == "scripted")
     meta = json.loads((out / "adaptation.json").read_text())
     assert meta["n_support_steps"] == 12 and meta["support_episodes_mean"] == 1.0
@@ -111,7 +115,10 @@ def test_study_end_to_end(study, tmp_path, monkeypatch, workers):
         by_length = list(csv.DictReader(handle))
     assert {(r["method"], r["length"]) for r in by_length} >= {("mtsac", "1"), ("scripted", "1")}
     assert all(float(r["support_arms"]) == 1.0 for r in by_length if r["method"] == "mtsac" and r["k"] == "1")
-    assert [m.get("target_estimator") for m in meta["methods"]] == [None, None, None, str(models / "estimator.pt")]
+    assert [m.get("target_estimator") for m in meta["methods"]] == [None, None, None, str(models / "estimator.pt"),
+                                                                     None]
+    assert meta["methods"][-1]["gradient_estimator"] == str(models / "gradient.pt")
+    assert all(r["support_arms"] == "nan" for r in rows if r["method"] == "gradient")  # adapts on no support set
 
 
 def test_learned_inference_needs_a_readable_estimator(study, tmp_path):
@@ -122,6 +129,9 @@ def test_learned_inference_needs_a_readable_estimator(study, tmp_path):
     (tmp_path / "estimator.pt").write_text("not an estimator")
     with pytest.raises(SystemExit, match="LearnedTargetEstimator.save"):
         study["main"]([*method, "--target-estimator", str(tmp_path / "estimator.pt"), "--out", str(tmp_path / "out")])
+    gradient = ["--method", "gradient", "sac", str(tmp_path / "goal_seed*.zip"), "infer-gradient"]
+    with pytest.raises(SystemExit, match="--gradient-estimator: .*GradientTargetEstimator.save"):
+        study["main"]([*gradient, "--gradient-estimator", str(tmp_path / "estimator.pt"), "--out", str(tmp_path / "o")])
 
 
 def test_a_file_that_is_not_a_model_stops_the_study_before_it_evaluates(study, tmp_path):

@@ -67,7 +67,7 @@ def test_online_control_infers_hidden_targets_for_a_goal_observing_model(
     assert exit_info.value.code == 2 and "--target-estimator needs --infer-targets learned" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("inference", ["probe", "learned"])  # learned: the packaged target estimator
+@pytest.mark.parametrize("inference", ["probe", "learned", "gradient"])  # learned, gradient: the packaged estimators
 def test_online_control_runs_the_packaged_goal_observing_policy_on_hidden_targets(
     tmp_path: Path, inference: str
 ) -> None:

@@ -12,7 +12,14 @@ import torch
 import vafn_gym  # noqa: F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark, ScriptedController, run_episode, trilaterate
 from vafn_gym.controllers import PROBE_DIRECTIONS
-from vafn_sb3.target_inference import LearnedTargetEstimator, TargetInferencePolicy, collect_waypoint_readings
+from vafn_sb3.common.adaptation import evaluate_adaptation
+from vafn_sb3.gradient_estimator import BASELINE_STEP_SIZES, GradientTargetEstimator
+from vafn_sb3.target_inference import (
+    GradientInferencePolicy,
+    LearnedTargetEstimator,
+    TargetInferencePolicy,
+    collect_waypoint_readings,
+)
 
 HIDDEN = "VAFN/ThreeArmReachHidden-v1"
 GOAL = "VAFN/ThreeArmReachGoal-v1"
@@ -155,7 +162,7 @@ def test_learned_estimator_learns_targets_from_readings_and_round_trips(tmp_path
 def test_learned_inference_moves_as_probe_inference_and_collects_labelled_readings(goal_oracle):
     env = gym.make(HIDDEN)
     tasks = InstructionBenchmark(HIDDEN, 3, 4, n_test=4).test_tasks
-    with pytest.raises(ValueError, match="only inference='learned' takes an estimator"):
+    with pytest.raises(ValueError, match="takes an estimator"):
         TargetInferencePolicy.for_env(goal_oracle, env, estimator=trilaterate)
 
     class Exact:  # the estimator a perfect network would be: trilateration of its first 6 readings
@@ -208,4 +215,60 @@ def test_the_packaged_estimator_finds_held_out_targets_from_four_readings(goal_o
 
     assert within_tolerance(LearnedTargetEstimator.load()) >= 0.9
     assert within_tolerance(LearnedTargetEstimator()) < 0.5  # an untrained network does not pass this test
+    env.close()
+
+
+def test_gradient_estimator_meta_learns_steps_that_find_targets(tmp_path):
+    points, distances, targets = synthetic_readings(3000, seed=0)
+    train, test = slice(0, 2500), slice(2500, None)
+
+    def median_error(estimator: GradientTargetEstimator, steps: int) -> float:
+        estimates = estimator.predict(points[test], distances[test], steps=steps)
+        return float(np.median(np.linalg.norm(estimates - targets[test], axis=1)))
+
+    meta = GradientTargetEstimator(hidden=(64, 64), steps=5, seed=0)
+    meta.fit(points[train], distances[train], targets[train], epochs=60, progress=False)
+    plain = GradientTargetEstimator(hidden=(64, 64), steps=5, seed=0)
+    plain.fit(points[train], distances[train], targets[train], meta=False, epochs=60, progress=False)
+    # K = 0 ignores the readings: every estimate is the first position plus the same learned offset
+    offsets = meta.predict(points[test], distances[test], steps=0) - points[test, 0]
+    assert np.allclose(offsets, offsets[0], atol=1e-6)
+    assert median_error(meta, 5) < 0.5 * median_error(meta, 0), (median_error(meta, 5), median_error(meta, 0))
+    assert median_error(meta, 5) < median_error(plain, 5)  # what meta-learning the start and the steps adds
+    assert plain.start.abs().max().item() == 0.0 and not plain.meta and meta.meta
+    assert any(np.isclose(plain.log_step.exp().detach().numpy(), step).all() for step in BASELINE_STEP_SIZES)
+    fewer = meta.with_steps(2)
+    assert fewer.steps == 2 and meta.steps == 5 and fewer.net is meta.net
+    assert np.allclose(fewer(points[0], distances[0]), meta.predict(points[:1], distances[:1], steps=2)[0])
+    assert meta(list(points[0, :3]), list(distances[0, :3])) is None
+    path = tmp_path / "gradient.pt"
+    meta.save(path)
+    loaded = GradientTargetEstimator.load(path)
+    assert loaded.steps == 5 and np.allclose(loaded(points[0], distances[0]), meta(points[0], distances[0]))
+    path.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="GradientTargetEstimator.save"):
+        GradientTargetEstimator.load(path)
+    for bad in ({"steps": -1}, {"n_readings": 3}):
+        with pytest.raises(ValueError):
+            GradientTargetEstimator(**bad)
+    with pytest.raises(ValueError, match="steps must be >= 0"):
+        meta.with_steps(-1)
+
+
+def test_gradient_inference_adapts_over_k_with_the_packaged_estimator(goal_oracle):
+    from vafn_sb3.pretrained import PRETRAINED_GRADIENT_ESTIMATOR
+
+    env = gym.make(HIDDEN)
+    policy = GradientInferencePolicy.for_env(goal_oracle, env)  # the packaged estimator, unadapted: K = 0
+    assert policy.estimator.steps == 0 and policy.probes
+    metadata = json.loads(PRETRAINED_GRADIENT_ESTIMATOR.with_suffix(".json").read_text())
+    assert metadata["kind"] == "GradientTargetEstimator" and metadata["meta"] is True
+    adapted = policy.adapt(env, k=10)
+    assert adapted.estimator.steps == 10 and policy.estimator.steps == 0 and adapted.support is None
+    tasks = InstructionBenchmark(HIDDEN, 1, 2, n_test=4).test_tasks
+    rows = evaluate_adaptation(policy, HIDDEN, tasks, n_support=0, k_values=[0, 10])
+    success = {k: np.mean([row["success_rate"] for row in rows if row["k"] == k]) for k in (0, 10)}
+    assert success[0] == 0.0 and success[10] == 1.0, success
+    with pytest.raises(ValueError, match="gradient steps"):
+        GradientInferencePolicy.for_env(goal_oracle, env, inference="probe")
     env.close()

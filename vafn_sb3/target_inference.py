@@ -10,11 +10,15 @@ until its own readings span a volume), ``inference="none"`` never estimates (the
 goal-observing policy with nothing inferred, this method's K = 0). ``inference="learned"`` makes the probe moves but
 replaces trilateration by a :class:`LearnedTargetEstimator`: a network that maps the waypoint's first readings to
 the target, trained by regression on targets the training env knows (the privileged-information adaptation module of
-RMA), never told that the reading is ``|p - t|``.
+RMA), never told that the reading is ``|p - t|``. ``inference="gradient"`` (:class:`GradientInferencePolicy`) makes the
+probe moves, then infers the target by ``K`` meta-learned gradient steps on a 3-number context
+(:class:`~vafn_sb3.gradient_estimator.GradientTargetEstimator`); its ``adapt(k=K)`` sets ``K``, so it has an
+adaptation curve like the gradient-adapting learners.
 """
 
 from __future__ import annotations
 
+import copy
 import pickle
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -44,12 +48,14 @@ from vafn_gym.controllers import PROBE_DIRECTIONS, trilaterate
 from vafn_gym.layout import ArmLayout
 from vafn_sb3.common.adaptation import seeded_torch_stream
 
-__all__ = ["ESTIMATOR_READINGS", "INFERENCE_MODES", "LearnedTargetEstimator", "TargetInferencePolicy",
-           "collect_waypoint_readings"]
+__all__ = ["ESTIMATOR_READINGS", "INFERENCE_MODES", "GradientInferencePolicy", "LearnedTargetEstimator",
+           "TargetInferencePolicy", "collect_waypoint_readings"]
 
 #: ``inference`` settings: probe moves then trilateration, trilateration of passive readings only, probe moves then
-#: a :class:`LearnedTargetEstimator`, no inference.
-INFERENCE_MODES = ("probe", "passive", "learned", "none")
+#: a :class:`LearnedTargetEstimator`, probe moves then gradient steps of a ``GradientTargetEstimator``, no inference.
+INFERENCE_MODES = ("probe", "passive", "learned", "gradient", "none")
+#: Settings that make the probe moves and estimate once, from a waypoint's first readings, with an estimator.
+ESTIMATOR_MODES = ("learned", "gradient")
 #: Readings a :class:`LearnedTargetEstimator` reads by default: the first and one after each probe move, which do not
 #: depend on the policy it serves (later ones do: an estimator trained on them is tied to one policy).
 ESTIMATOR_READINGS = 4
@@ -67,9 +73,9 @@ class TargetInferencePolicy:
     :param priors: each arm's goal before its target is estimated (e.g. the shared region's centre), same frame.
     :param inference: one of :data:`INFERENCE_MODES`.
     :param waiting_goal: the env's ``waiting_goal``: with "home" a waiting arm's goal is its home, as the model saw it.
-    :param estimator: the :class:`LearnedTargetEstimator` of ``inference="learned"`` (any callable from a
-        waypoint's readings so far, ``(points, distances)``, to a target or None); None: the packaged estimator
-        (``LearnedTargetEstimator.load()``).
+    :param estimator: the estimator of ``inference="learned"`` or ``"gradient"`` (any callable from a waypoint's
+        readings so far, ``(points, distances)``, to a target or None); None: the packaged one
+        (``LearnedTargetEstimator.load()`` or ``GradientTargetEstimator.load()``).
     """
 
     def __init__(
@@ -96,12 +102,18 @@ class TargetInferencePolicy:
         self.priors = {arm: np.asarray(priors[arm], dtype=np.float64) for arm in self.arm_ids}
         if inference not in INFERENCE_MODES:
             raise ValueError(f"inference must be one of {INFERENCE_MODES}, got {inference!r}")
-        if estimator is not None and inference != "learned":
-            raise ValueError(f"only inference='learned' takes an estimator, not inference={inference!r}")
+        if estimator is not None and inference not in ESTIMATOR_MODES:
+            raise ValueError(f"only inference in {ESTIMATOR_MODES} takes an estimator, not inference={inference!r}")
         self.inference = inference
-        self.estimator = LearnedTargetEstimator.load() if inference == "learned" and estimator is None else estimator
+        if estimator is None and inference == "learned":
+            estimator = LearnedTargetEstimator.load()
+        elif estimator is None and inference == "gradient":
+            from vafn_sb3.gradient_estimator import GradientTargetEstimator
+
+            estimator = GradientTargetEstimator.load()
+        self.estimator = estimator
         #: Whether a newly active arm makes the probe moves.
-        self.probes = inference in ("probe", "learned")
+        self.probes = inference in ("probe", *ESTIMATOR_MODES)
         self.waiting_goal = waiting_goal
         self.reset()
 
@@ -152,7 +164,7 @@ class TargetInferencePolicy:
         self._distances.append(distance)
         if self.inference == "none":
             estimate = None
-        elif self.inference == "learned":  # one estimate from the waypoint's first readings, not refined
+        elif self.inference in ESTIMATOR_MODES:  # one estimate from the waypoint's first readings, not refined
             estimate = self.estimator(self._points, self._distances) if self._estimate is None else None
         else:
             estimate = trilaterate(self._points, self._distances)
@@ -203,6 +215,46 @@ class TargetInferencePolicy:
         if obs.ndim != 1:
             raise ValueError(f"TargetInferencePolicy keeps per-episode readings: pass one observation, got {obs.shape}")
         return self.act(obs, deterministic=deterministic), None
+
+
+class GradientInferencePolicy(TargetInferencePolicy):
+    """:class:`TargetInferencePolicy` with ``inference="gradient"``, adaptable: ``adapt(k=K)`` sets the gradient steps.
+
+    Its own estimator takes ``steps`` steps (0: the meta-learned start, i.e. this method unadapted). ``adapt`` collects
+    no support set: the data each step adapts on are the waypoint's own first readings (the probe moves, inside the
+    episode), so ``n_support`` is ignored and the adapted policy has ``support = None``.
+
+    :param estimator: a :class:`~vafn_sb3.gradient_estimator.GradientTargetEstimator`; None: the packaged one.
+    :param steps: gradient steps per waypoint of this policy's estimator.
+    """
+
+    #: No support set: the adapted policies adapt on the episode's own readings.
+    support = None
+
+    def __init__(self, model: Any, homes: Mapping[int, np.ndarray], priors: Mapping[int, np.ndarray],
+                 inference: str = "gradient", waiting_goal: str = "target", estimator: Any = None,
+                 steps: int = 0) -> None:
+        if inference != "gradient":
+            raise ValueError(f"GradientInferencePolicy infers by gradient steps, not inference={inference!r}")
+        super().__init__(model, homes, priors, inference="gradient", waiting_goal=waiting_goal, estimator=estimator)
+        self.estimator = self.estimator.with_steps(steps)
+
+    @classmethod
+    def for_env(
+        cls, model: Any, env: gym.Env, inference: str = "gradient", estimator: Any = None, steps: int = 0
+    ) -> GradientInferencePolicy:
+        """A policy for ``env`` (a hidden-target :class:`MultiArmEnv`, any wrapper, ``history=1``)."""
+        policy = super().for_env(model, env, inference=inference, estimator=estimator)
+        policy.estimator = policy.estimator.with_steps(steps)
+        return policy
+
+    def adapt(self, env: gym.Env, task: Any = None, n_support: int = 0, k: int = 1,
+              seed: int | None = None) -> GradientInferencePolicy:
+        """A copy whose estimator takes ``k`` gradient steps per waypoint (nothing collected; this policy unchanged)."""
+        adapted = copy.copy(self)
+        adapted.estimator = self.estimator.with_steps(k)
+        adapted.reset()
+        return adapted
 
 
 class LearnedTargetEstimator:

@@ -38,7 +38,13 @@ from vafn_gym.queue import PoissonArrivals, ScheduledArrivals  # noqa: E402
 from vafn_sb3 import load_pretrained  # noqa: E402
 from vafn_sb3.loading import family_mismatch, load_model, training_env  # noqa: E402
 from vafn_sb3.online import OnlineController  # noqa: E402
-from vafn_sb3.target_inference import INFERENCE_MODES, LearnedTargetEstimator, TargetInferencePolicy  # noqa: E402
+from vafn_sb3.gradient_estimator import GradientTargetEstimator  # noqa: E402
+from vafn_sb3.target_inference import (  # noqa: E402
+    ESTIMATOR_MODES,
+    INFERENCE_MODES,
+    LearnedTargetEstimator,
+    TargetInferencePolicy,
+)
 from zoo.plot import plot_online_distances  # noqa: E402
 
 
@@ -85,8 +91,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="run a model trained with observed targets (observe_goal=True) on the stream's hidden "
                              "targets through TargetInferencePolicy with this inference setting")
     parser.add_argument("--target-estimator", type=Path, default=None,
-                        help="LearnedTargetEstimator file for --infer-targets learned (benchmarks/target_estimator.py; "
-                             "None: the packaged estimator)")
+                        help="estimator file for --infer-targets learned or gradient (benchmarks/target_estimator.py, "
+                             "its --estimator regression or gradient; None: the packaged estimator)")
     parser.add_argument("--n-support", type=int, default=25, help="support transitions per instruction (twin env)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the arrivals, support rollouts and env")
     parser.add_argument("--out", type=Path, default=Path("runs/online"),
@@ -122,13 +128,14 @@ def main(argv: list[str] | None = None) -> None:
         model = ScriptedController.for_env(env)
     else:
         model = RandomPolicy(env.action_space, args.seed)
-    if args.target_estimator is not None and args.infer_targets != "learned":
-        parser.exit(2, "online_control.py: error: --target-estimator needs --infer-targets learned\n")
+    if args.target_estimator is not None and args.infer_targets not in ESTIMATOR_MODES:
+        parser.exit(2, "online_control.py: error: --target-estimator needs --infer-targets learned or gradient\n")
     if args.infer_targets is not None:
         if args.policy is not None:
             parser.exit(2, "online_control.py: error: --infer-targets needs --model or --pretrained\n")
         try:
-            estimator = None if args.target_estimator is None else LearnedTargetEstimator.load(args.target_estimator)
+            estimator_class = GradientTargetEstimator if args.infer_targets == "gradient" else LearnedTargetEstimator
+            estimator = None if args.target_estimator is None else estimator_class.load(args.target_estimator)
             model = TargetInferencePolicy.for_env(model, env, inference=args.infer_targets, estimator=estimator)
         except ValueError as error:
             parser.exit(2, f"online_control.py: error: {error}\n")

@@ -230,7 +230,7 @@ def pretrained_methods(panel: Panel) -> list[StudyMethod]:
             methods.append(StudyMethod(f"pretrained_{algo}", algo, env_id, "adapt" if panel.over_k else "zero-shot"))
         elif panel.env_id == HIDDEN_ENV and env_id == GOAL_ENV:
             methods += [StudyMethod(f"pretrained_{algo}_infer_{how}", algo, env_id, f"infer-{how}")
-                        for how in ("probe", "learned")]
+                        for how in ("probe", "learned", "gradient")]
     return methods
 
 

@@ -28,8 +28,9 @@ class StudyMethod:
     ``evaluation`` is ``"adapt"`` (K adaptation steps on the panel's support sets, every K of the mode),
     ``"zero-shot"`` (K = 0: a method that adapts inside the episode, or a panel that only measures generalisation),
     ``"infer-probe"`` or ``"infer-learned"`` (a model trained on observed targets run through ``TargetInferencePolicy``
-    with trilateration, or with the packaged target estimator). A method with ``models_from`` trains nothing: it
-    evaluates the models of that method of the panel another way.
+    with trilateration, or with the packaged target estimator), ``"infer-gradient"`` (the same with K gradient steps of
+    the packaged meta-learned ``GradientTargetEstimator``, every K of the mode). A method with ``models_from`` trains
+    nothing: it evaluates the models of that method of the panel another way.
     """
 
     label: str
@@ -86,6 +87,8 @@ HIDDEN_PANEL = Panel(
         StudyMethod("ppo_lstm", "ppo_lstm", HIDDEN_ENV, "zero-shot"),
         StudyMethod("goal_mappo_infer_probe", "mappo", GOAL_ENV, "infer-probe"),
         StudyMethod("goal_mappo_infer_learned", "mappo", GOAL_ENV, "infer-learned",
+                    models_from="goal_mappo_infer_probe"),
+        StudyMethod("goal_mappo_infer_gradient", "mappo", GOAL_ENV, "infer-gradient",
                     models_from="goal_mappo_infer_probe"),
     ),
     over_k=True,

@@ -20,6 +20,9 @@ WORKING_SUCCESS = 0.95
 #: The shipped :class:`~vafn_sb3.LearnedTargetEstimator` of the hidden-target env (``LearnedTargetEstimator.load()``),
 #: with its training command and held-out error in the JSON file beside it.
 PRETRAINED_ESTIMATOR = PRETRAINED_DIR / "estimators" / "target_estimator__VAFN-ThreeArmReachHidden-v1.pt"
+#: The shipped :class:`~vafn_sb3.GradientTargetEstimator` of the hidden-target env (``GradientTargetEstimator.load()``),
+#: with its meta-training command and held-out error per gradient step in the JSON file beside it.
+PRETRAINED_GRADIENT_ESTIMATOR = PRETRAINED_DIR / "estimators" / "gradient_estimator__VAFN-ThreeArmReachHidden-v1.pt"
 
 
 def available_pretrained() -> list[tuple[str, str]]:

@@ -1,0 +1,209 @@
+"""Target inference by gradient steps on a context: a meta-learned reading model, adapted per waypoint.
+
+:class:`GradientTargetEstimator` is the gradient-based counterpart of :class:`~vafn_sb3.LearnedTargetEstimator`. Where
+that network maps a waypoint's first (position, distance) readings straight to the target, this one holds a *reading
+model* ``F(offsets, z) -> readings`` (which readings a target at ``z`` would give along the arm's first moves) and
+infers the target by ``K`` gradient steps on ``z`` alone, from a meta-learned start ``z_0``, to make ``F`` reproduce the
+readings actually seen. Only the three numbers of ``z`` adapt, never the network: fast context adaptation (CAVIA,
+Zintgraf et al., 2019) with per-dimension meta-learned step sizes (Meta-SGD, Li et al., 2017). Meta-training
+(:meth:`GradientTargetEstimator.fit`) differentiates through the ``K`` steps so that every step count up to ``K`` lands
+near the target the training env knows, and also regresses ``F`` on the true target so that the target is where the
+readings are explained (the steps then stay there past ``K``). ``meta=False`` trains the reading model alone and
+adapts with plain gradient descent from the mean target at the step size that does best on the training readings: the
+"fine-tuning" baseline that shows what the meta-learning adds. Like the regression estimator it is never told that a
+reading is ``|p - t|``.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import pickle
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from tqdm.auto import tqdm
+
+from vafn_sb3.common.adaptation import seeded_torch_stream
+from vafn_sb3.target_inference import ESTIMATOR_READINGS, LearnedTargetEstimator
+
+__all__ = ["GradientTargetEstimator"]
+
+#: Step sizes the ``meta=False`` baseline chooses its one step size from (standardised units).
+BASELINE_STEP_SIZES = tuple(float(step) for step in np.logspace(-3, 0.5, 15))
+
+
+class GradientTargetEstimator:
+    """Infers a waypoint's target with ``steps`` gradient steps on a 3-number context (see the module docstring).
+
+    :param n_readings: readings it reads (at least 4: fewer cannot determine a point in space).
+    :param hidden: hidden layer sizes of the reading model.
+    :param steps: gradient steps per inference (``with_steps`` changes it; 0 returns the meta-learned start).
+    :param seed: seed of the initial weights.
+    """
+
+    def __init__(
+        self, n_readings: int = ESTIMATOR_READINGS, hidden: Sequence[int] = (128, 128), steps: int = 20, seed: int = 0
+    ) -> None:
+        if n_readings < 4:
+            raise ValueError(f"n_readings must be at least 4 (a point in space needs four distances), got {n_readings}")
+        if steps < 0:
+            raise ValueError(f"steps must be >= 0, got {steps}")
+        self.n_readings = int(n_readings)
+        self.hidden = tuple(int(size) for size in hidden)
+        self.steps = int(steps)
+        #: Whether :meth:`fit` meta-learned the start, the step sizes and the reading model (False: the baseline).
+        self.meta = True
+        sizes = [3 * (self.n_readings - 1) + 3, *self.hidden]
+        with seeded_torch_stream(seed):
+            layers: list[nn.Module] = []
+            for size_in, size_out in zip(sizes[:-1], sizes[1:]):
+                layers += [nn.Linear(size_in, size_out), nn.Tanh()]  # smooth: its gradient in z is what adapts
+            self.net = nn.Sequential(*layers, nn.Linear(sizes[-1], self.n_readings))
+        self.start = nn.Parameter(torch.zeros(3))
+        self.log_step = nn.Parameter(torch.full((3,), math.log(0.1)))
+        n_offsets = 3 * (self.n_readings - 1)
+        self.stats = {"x_mean": np.zeros(n_offsets), "x_std": np.ones(n_offsets), "r_mean": np.zeros(self.n_readings),
+                      "r_std": np.ones(self.n_readings), "z_mean": np.zeros(3), "z_std": np.ones(3)}
+
+    def _inputs(self, points: np.ndarray, distances: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """Standardised move offsets ``(N, 3 (R - 1))`` and readings ``(N, R)`` of a batch (first ``R`` readings)."""
+        n = self.n_readings
+        features = LearnedTargetEstimator.features(np.asarray(points)[:, :n], np.asarray(distances)[:, :n])
+        n_offsets = 3 * (n - 1)
+        offsets = (features[:, :n_offsets] - self.stats["x_mean"]) / self.stats["x_std"]
+        readings = (features[:, n_offsets:] - self.stats["r_mean"]) / self.stats["r_std"]
+        return torch.as_tensor(offsets, dtype=torch.float32), torch.as_tensor(readings, dtype=torch.float32)
+
+    def _contexts(self, offsets: torch.Tensor, readings: torch.Tensor, steps: int, train: bool) -> list[torch.Tensor]:
+        """The context after 0, 1, ..., ``steps`` gradient steps on the reading error (graph kept when ``train``)."""
+        z = self.start.expand(len(offsets), 3)
+        if not train:
+            z = z.detach().requires_grad_(True)
+        contexts = [z]
+        for _ in range(steps):
+            # summed over the batch, so each row's gradient is its own reading error's
+            error = ((self.net(torch.cat([offsets, z], dim=1)) - readings) ** 2).sum()
+            (gradient,) = torch.autograd.grad(error, z, create_graph=train)
+            z = z - self.log_step.exp() * gradient
+            if not train:
+                z = z.detach().requires_grad_(True)
+            contexts.append(z)
+        return contexts
+
+    def predict(self, points: np.ndarray, distances: np.ndarray, steps: int | None = None) -> np.ndarray:
+        """Targets ``(N, 3)`` of readings ``points (N, R, 3)``, ``distances (N, R)`` after ``steps`` (None: its own)."""
+        offsets, readings = self._inputs(points, distances)
+        with torch.enable_grad():
+            z = self._contexts(offsets, readings, self.steps if steps is None else int(steps), train=False)[-1]
+        z = z.detach().double().numpy() * self.stats["z_std"] + self.stats["z_mean"]
+        return np.asarray(points, dtype=np.float64)[:, 0] + z
+
+    def __call__(self, points: Sequence[np.ndarray], distances: Sequence[float]) -> np.ndarray | None:
+        """The target of one waypoint's readings (its first ``n_readings``), or None before that many."""
+        if len(points) < self.n_readings:
+            return None
+        n = self.n_readings
+        return self.predict(np.asarray(points[:n])[None], np.asarray(distances[:n])[None])[0]
+
+    def with_steps(self, steps: int) -> GradientTargetEstimator:
+        """A copy sharing the weights that takes ``steps`` gradient steps per inference."""
+        if int(steps) < 0:
+            raise ValueError(f"steps must be >= 0, got {steps}")
+        adapted = copy.copy(self)
+        adapted.steps = int(steps)
+        return adapted
+
+    def fit(
+        self, points: np.ndarray, distances: np.ndarray, targets: np.ndarray, meta: bool = True, epochs: int = 200,
+        batch_size: int = 256, lr: float = 1e-3, seed: int = 0, progress: bool = True,
+    ) -> list[float]:
+        """Meta-train on readings ``points (N, R, 3)``, ``distances (N, R)`` labelled with ``targets (N, 3)``.
+
+        ``meta=True``: the loss is the context's squared error after each of 1..``steps`` steps (mean over the steps)
+        plus the reading model's error at the true target; the start, the step sizes and the reading model all learn.
+        ``meta=False``: the reading model's error only; then the start is the mean target and the step size the one of
+        :data:`BASELINE_STEP_SIZES` with the smallest error after ``steps`` steps on these readings.
+        :return: mean loss per epoch.
+        """
+        points, targets = np.asarray(points, dtype=np.float64), np.asarray(targets, dtype=np.float64)
+        n = self.n_readings
+        points, distances = points[:, :n], np.asarray(distances, dtype=np.float64)[:, :n]
+        if not (len(points) == len(distances) == len(targets)) or len(points) < 2:
+            raise ValueError(f"need as many readings as targets, at least 2: {len(points)}, {len(distances)}, "
+                             f"{len(targets)}")
+        features = LearnedTargetEstimator.features(points, distances)
+        z = targets - points[:, 0]
+        n_offsets = 3 * (n - 1)
+        self.stats = {"x_mean": features[:, :n_offsets].mean(0), "x_std": features[:, :n_offsets].std(0) + 1e-8,
+                      "r_mean": features[:, n_offsets:].mean(0), "r_std": features[:, n_offsets:].std(0) + 1e-8,
+                      "z_mean": z.mean(0), "z_std": z.std(0) + 1e-8}
+        self.meta = bool(meta)
+        offsets, readings = self._inputs(points, distances)
+        true_z = torch.as_tensor((z - self.stats["z_mean"]) / self.stats["z_std"], dtype=torch.float32)
+        parameters = [*self.net.parameters(), *([self.start, self.log_step] if meta else [])]
+        optimizer = torch.optim.Adam(parameters, lr=lr)
+        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=epochs)
+        generator = torch.Generator().manual_seed(seed)
+        losses = []
+        description = "meta-training the gradient estimator" if meta else "fitting the reading model"
+        for _ in tqdm(range(epochs), desc=description, disable=not progress):
+            total = 0.0
+            for batch in torch.randperm(len(offsets), generator=generator).split(batch_size):
+                x, r, target = offsets[batch], readings[batch], true_z[batch]
+                loss = nn.functional.mse_loss(self.net(torch.cat([x, target], dim=1)), r)
+                if meta and self.steps > 0:
+                    contexts = self._contexts(x, r, self.steps, train=True)[1:]
+                    loss = loss + torch.stack([((c - target) ** 2).sum(1).mean() for c in contexts]).mean()
+                optimizer.zero_grad()
+                loss.backward()
+                optimizer.step()
+                total += loss.item() * len(batch)
+            schedule.step()
+            losses.append(total / len(offsets))
+        if not meta:
+            with torch.no_grad():
+                self.start.zero_()  # the mean target, in standardised units
+            errors = {}
+            for step in BASELINE_STEP_SIZES:
+                with torch.no_grad():
+                    self.log_step.fill_(math.log(step))
+                final = self._contexts(offsets, readings, self.steps, train=False)[-1].detach()
+                error = ((final - true_z) ** 2).sum(1).mean().item()
+                errors[step] = error if math.isfinite(error) else math.inf
+            with torch.no_grad():
+                self.log_step.fill_(math.log(min(errors, key=errors.get)))
+        return losses
+
+    def save(self, path: str | Path) -> None:
+        """Weights, start, step sizes, sizes and standardisation statistics in one ``torch.save`` file."""
+        stats = {key: torch.as_tensor(value, dtype=torch.float64) for key, value in self.stats.items()}
+        torch.save({"n_readings": self.n_readings, "hidden": list(self.hidden), "steps": self.steps, "meta": self.meta,
+                    "state_dict": self.net.state_dict(), "start": self.start.detach(),
+                    "log_step": self.log_step.detach(), "stats": stats}, path)
+
+    @classmethod
+    def load(cls, path: str | Path | None = None) -> GradientTargetEstimator:
+        """An estimator saved by :meth:`save` (tensors and numbers only: a file carrying code is refused, not run).
+
+        :param path: the file; None loads the packaged estimator of ``VAFN/ThreeArmReachHidden-v1``.
+        """
+        if path is None:
+            from vafn_sb3.pretrained import PRETRAINED_GRADIENT_ESTIMATOR
+
+            path = PRETRAINED_GRADIENT_ESTIMATOR
+        try:
+            saved = torch.load(path, map_location="cpu", weights_only=True)
+            estimator = cls(saved["n_readings"], saved["hidden"], steps=saved["steps"])
+            estimator.net.load_state_dict(saved["state_dict"])
+            with torch.no_grad():
+                estimator.start.copy_(saved["start"])
+                estimator.log_step.copy_(saved["log_step"])
+            estimator.meta = bool(saved["meta"])
+            estimator.stats = {key: value.double().numpy() for key, value in saved["stats"].items()}
+        except (OSError, KeyError, TypeError, RuntimeError, EOFError, pickle.UnpicklingError) as error:
+            raise ValueError(f"{path} is not a file of GradientTargetEstimator.save: {error}") from error
+        return estimator
