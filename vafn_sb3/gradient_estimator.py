@@ -25,10 +25,9 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import nn
-from tqdm.auto import tqdm
 
 from vafn_sb3.common.adaptation import seeded_torch_stream
-from vafn_sb3.target_inference import ESTIMATOR_READINGS, LearnedTargetEstimator
+from vafn_sb3.target_inference import ESTIMATOR_READINGS, LearnedTargetEstimator, fit_minibatches
 
 __all__ = ["GradientTargetEstimator"]
 
@@ -145,25 +144,18 @@ class GradientTargetEstimator:
         offsets, readings = self._inputs(points, distances)
         true_z = torch.as_tensor((z - self.stats["z_mean"]) / self.stats["z_std"], dtype=torch.float32)
         parameters = [*self.net.parameters(), *([self.start, self.log_step] if meta else [])]
-        optimizer = torch.optim.Adam(parameters, lr=lr)
-        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=epochs)
-        generator = torch.Generator().manual_seed(seed)
-        losses = []
+
+        def batch_loss(batch: torch.Tensor) -> torch.Tensor:
+            x, r, target = offsets[batch], readings[batch], true_z[batch]
+            loss = nn.functional.mse_loss(self.net(torch.cat([x, target], dim=1)), r)
+            if meta and self.steps > 0:
+                contexts = self._contexts(x, r, self.steps, train=True)[1:]
+                loss = loss + torch.stack([((c - target) ** 2).sum(1).mean() for c in contexts]).mean()
+            return loss
+
         description = "meta-training the gradient estimator" if meta else "fitting the reading model"
-        for _ in tqdm(range(epochs), desc=description, disable=not progress):
-            total = 0.0
-            for batch in torch.randperm(len(offsets), generator=generator).split(batch_size):
-                x, r, target = offsets[batch], readings[batch], true_z[batch]
-                loss = nn.functional.mse_loss(self.net(torch.cat([x, target], dim=1)), r)
-                if meta and self.steps > 0:
-                    contexts = self._contexts(x, r, self.steps, train=True)[1:]
-                    loss = loss + torch.stack([((c - target) ** 2).sum(1).mean() for c in contexts]).mean()
-                optimizer.zero_grad()
-                loss.backward()
-                optimizer.step()
-                total += loss.item() * len(batch)
-            schedule.step()
-            losses.append(total / len(offsets))
+        losses = fit_minibatches(parameters, batch_loss, len(offsets), epochs, batch_size, lr, seed, description,
+                                 progress)
         if not meta:
             with torch.no_grad():
                 self.start.zero_()  # the mean target, in standardised units

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import copy
 import pickle
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +62,28 @@ ESTIMATOR_READINGS = 4
 
 #: Readings of one waypoint closer than this (metres) to the previous one are not recorded.
 MIN_SEPARATION = 1e-3
+
+
+def fit_minibatches(
+    parameters: list[torch.Tensor], batch_loss: Callable[[torch.Tensor], torch.Tensor], n: int, epochs: int,
+    batch_size: int, lr: float, seed: int, description: str, progress: bool,
+) -> list[float]:
+    """Adam, cosine schedule, ``batch_loss(indices)`` over seeded shuffles of ``n`` rows; the mean loss per epoch."""
+    optimizer = torch.optim.Adam(parameters, lr=lr)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=epochs)
+    generator = torch.Generator().manual_seed(seed)
+    losses = []
+    for _ in tqdm(range(epochs), desc=description, disable=not progress):
+        total = 0.0
+        for batch in torch.randperm(n, generator=generator).split(batch_size):
+            loss = batch_loss(batch)
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            total += loss.item() * len(batch)
+        schedule.step()
+        losses.append(total / n)
+    return losses
 
 
 class TargetInferencePolicy:
@@ -322,21 +344,9 @@ class LearnedTargetEstimator:
         self.stats = {"x_mean": x.mean(0), "x_std": x.std(0) + 1e-8, "y_mean": y.mean(0), "y_std": y.std(0) + 1e-8}
         x_t = torch.as_tensor((x - self.stats["x_mean"]) / self.stats["x_std"], dtype=torch.float32)
         y_t = torch.as_tensor((y - self.stats["y_mean"]) / self.stats["y_std"], dtype=torch.float32)
-        optimizer = torch.optim.Adam(self.net.parameters(), lr=lr)
-        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=epochs)
-        generator = torch.Generator().manual_seed(seed)
-        losses = []
-        for _ in tqdm(range(epochs), desc="fitting the target estimator", disable=not progress):
-            total = 0.0
-            for batch in torch.randperm(len(x_t), generator=generator).split(batch_size):
-                loss = nn.functional.mse_loss(self.net(x_t[batch]), y_t[batch])
-                optimizer.zero_grad()
-                loss.backward()
-                optimizer.step()
-                total += loss.item() * len(batch)
-            schedule.step()
-            losses.append(total / len(x_t))
-        return losses
+        return fit_minibatches(list(self.net.parameters()),
+                               lambda batch: nn.functional.mse_loss(self.net(x_t[batch]), y_t[batch]), len(x_t),
+                               epochs, batch_size, lr, seed, "fitting the target estimator", progress)
 
     def save(self, path: str | Path) -> None:
         """Weights, layer sizes and standardisation statistics in one ``torch.save`` file."""
