@@ -130,7 +130,7 @@ class TargetInferencePolicy:
         if estimator is None and inference == "learned":
             estimator = LearnedTargetEstimator.load()
         elif estimator is None and inference == "gradient":
-            from vafn_sb3.gradient_estimator import GradientTargetEstimator
+            from vafn_sb3.gradient_estimator import GradientTargetEstimator  # it imports this module
 
             estimator = GradientTargetEstimator.load()
         self.estimator = estimator
