@@ -78,7 +78,7 @@ from vafn_sb3.target_inference import (  # noqa: E402
     LearnedTargetEstimator,
     TargetInferencePolicy,
 )
-from vafn_sb3.loading import load_model  # noqa: E402
+from vafn_sb3.loading import load_model, load_model_or_exit  # noqa: E402
 from zoo.registry import register_algorithms  # noqa: E402
 from zoo.study import support_budget  # noqa: E402
 
@@ -365,10 +365,7 @@ def main(argv: list[str] | None = None) -> None:
             raise SystemExit(f"--{flag}: {error}") from None
     for method in methods:  # likewise every model file, before any evaluation runs
         for path in method.paths:
-            try:
-                load_model(path, method.algo)
-            except (ValueError, FileNotFoundError) as error:
-                raise SystemExit(f"--method {method.label}: {error}") from None
+            load_model_or_exit(path, method.algo, f"--method {method.label}: ")
     args.out.mkdir(parents=True, exist_ok=True)
     benchmark = InstructionBenchmark(args.env, args.min_length, args.max_length, n_test=args.n_tasks,
                                      env_kwargs=args.env_kwargs)

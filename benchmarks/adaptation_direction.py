@@ -31,7 +31,7 @@ import vafn_gym  # noqa: E402, F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark  # noqa: E402
 from vafn_gym.benchmarks import confidence_half_width  # noqa: E402
 from vafn_sb3.common.adaptation import evaluate_adaptation  # noqa: E402
-from vafn_sb3.loading import load_model  # noqa: E402
+from vafn_sb3.loading import load_model_or_exit  # noqa: E402
 
 COLUMNS = ("final_cm", "moved_cm", "cosine", "success")
 
@@ -121,10 +121,7 @@ def main(argv: list[str] | None = None) -> list[str]:
     k_values = sorted(set(args.k))
     models = {}
     for path in paths:  # every file is read before any episode runs, so a bad one fails at once
-        try:
-            model = load_model(path, args.algo)[0]
-        except (ValueError, FileNotFoundError) as error:
-            raise SystemExit(str(error)) from None
+        model = load_model_or_exit(path, args.algo)[0]
         if max(k_values) > 0 and not callable(getattr(model, "adapt", None)):
             raise SystemExit(f"{path}: {type(model).__name__} has no adapt(); use --k 0")
         models[Path(path).name] = model

@@ -29,7 +29,7 @@ import torch  # noqa: E402
 from vafn_gym import InstructionBenchmark, episode_rates  # noqa: E402
 from vafn_sb3 import load_pretrained  # noqa: E402
 from vafn_sb3.common.adaptation import evaluate_adaptation  # noqa: E402
-from vafn_sb3.loading import load_model  # noqa: E402
+from vafn_sb3.loading import load_model_or_exit  # noqa: E402
 
 
 def failure_table(failed: list[dict], handover_steps: int) -> list[str]:
@@ -72,10 +72,7 @@ def main() -> None:
     if args.pretrained is not None:
         model = load_pretrained(args.pretrained, env_id=args.env)
     else:
-        try:
-            model, _ = load_model(args.model, args.algo)
-        except (ValueError, FileNotFoundError) as error:
-            raise SystemExit(str(error)) from None
+        model, _ = load_model_or_exit(args.model, args.algo)
     benchmark = InstructionBenchmark(args.env, args.min_length, args.max_length, n_test=args.n_test,
                                      env_kwargs=args.env_kwargs)
     if args.k == 0:

@@ -13,7 +13,7 @@ from stable_baselines3 import SAC as SB3SAC
 
 import vafn_gym  # noqa: F401  (registers the env IDs)
 from vafn_sb3 import MAAC, MADDPG, MAMLSAC, MAPPO, MTSAC, SAC
-from vafn_sb3.loading import load_model, saved_policy_class
+from vafn_sb3.loading import load_model, load_model_or_exit, saved_policy_class
 
 ENV_ID = "VAFN/ThreeArmReach-v1"
 TINY = [16]
@@ -96,3 +96,12 @@ def test_a_zip_naming_no_known_policy_is_still_tried_with_every_algorithm(env, t
     with pytest.raises(ValueError, match="could not load .* with any algorithm") as error:
         load_model(path)  # every candidate fails on the broken class, and the error lists them all
     assert all(f"{key}: " in str(error.value) for key in ("mtsac", "sac", "maac", "maddpg", "mappo", "td3", "ppo"))
+
+
+def test_a_command_line_tool_stops_in_one_line_naming_the_file(tmp_path):
+    broken = tmp_path / "broken.zip"
+    broken.write_text("not a model")
+    with pytest.raises(SystemExit, match=r"^--method m: .*broken.zip"):
+        load_model_or_exit(broken, None, "--method m: ")
+    with pytest.raises(SystemExit, match="no model file at"):
+        load_model_or_exit(tmp_path / "missing.zip")
