@@ -271,4 +271,6 @@ def test_gradient_inference_adapts_over_k_with_the_packaged_estimator(goal_oracl
     assert success[0] == 0.0 and success[10] == 1.0, success
     with pytest.raises(ValueError, match="gradient steps"):
         GradientInferencePolicy.for_env(goal_oracle, env, inference="probe")
+    with pytest.raises(ValueError, match="needs a GradientTargetEstimator"):
+        GradientInferencePolicy.for_env(goal_oracle, env, estimator=LearnedTargetEstimator())
     env.close()

@@ -258,6 +258,9 @@ class GradientInferencePolicy(TargetInferencePolicy):
                  steps: int = 0) -> None:
         if inference != "gradient":
             raise ValueError(f"GradientInferencePolicy infers by gradient steps, not inference={inference!r}")
+        if estimator is not None and not callable(getattr(estimator, "with_steps", None)):
+            raise ValueError(f"GradientInferencePolicy needs a GradientTargetEstimator (with with_steps), got "
+                             f"{type(estimator).__name__}")
         super().__init__(model, homes, priors, inference="gradient", waiting_goal=waiting_goal, estimator=estimator)
         self.estimator = self.estimator.with_steps(steps)
 
