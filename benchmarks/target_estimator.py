@@ -17,7 +17,7 @@ whose 3-number context adapts by ``--steps`` gradient steps; files ``gradient_es
 ``gradient_estimator.json``, for ``benchmarks/adaptation.py --gradient-estimator``), and ``--estimator gradient-plain``
 its baseline without meta-learning (``gradient_plain_estimator_*``); both report the held-out error after each
 ``--report-k`` steps. The readings are saved as ``--out/readings.npz``; ``--readings`` reuses such a file instead of
-collecting again (it must come from the same env, model and task counts: its command is stored beside it).
+collecting again (the JSON of the run that collected it says from which env, model and instructions).
 """
 
 from __future__ import annotations

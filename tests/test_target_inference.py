@@ -196,6 +196,15 @@ def test_target_estimator_benchmark_writes_estimators_and_errors(load_benchmark,
     for bad in (["--model", str(tmp_path / "none.zip")], ["--n-readings", "3"]):  # fail before collecting
         with pytest.raises(SystemExit):
             module.main([*bad, "--out", str(tmp_path)])
+    # the gradient estimators train on the saved readings without collecting again, and report every K
+    gradient = module.main(["--estimator", "gradient", "--readings", str(tmp_path / "readings.npz"), "--steps", "2",
+                            "--report-k", "0", "2", "--epochs", "2", "--hidden", "8", "--out", str(tmp_path / "g")])
+    assert gradient["collect_cpu_s"] is None and gradient["train_readings"] == report["train_readings"]
+    assert set(gradient["learned"]["0"]["test_by_k"]) == {"0", "2"}
+    assert GradientTargetEstimator.load(tmp_path / "g" / "gradient_estimator_seed0.pt").steps == 2
+    (tmp_path / "bad.npz").write_bytes(b"not readings")
+    with pytest.raises(SystemExit, match="--readings"):
+        module.main(["--estimator", "gradient", "--readings", str(tmp_path / "bad.npz"), "--out", str(tmp_path / "b")])
 
 
 def test_the_packaged_estimator_finds_held_out_targets_from_four_readings(goal_oracle):
