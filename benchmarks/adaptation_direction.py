@@ -14,7 +14,6 @@ over models of each model's mean over tasks, ± 95 % Student-t half width) and w
 from __future__ import annotations
 
 import argparse
-import csv
 import glob
 import json
 import sys
@@ -30,6 +29,7 @@ import torch  # noqa: E402
 import vafn_gym  # noqa: E402, F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark  # noqa: E402
 from vafn_gym.benchmarks import confidence_half_width  # noqa: E402
+from vafn_gym.files import write_csv_rows  # noqa: E402
 from vafn_sb3.common.adaptation import evaluate_adaptation  # noqa: E402
 from vafn_sb3.loading import load_model_or_exit  # noqa: E402
 
@@ -130,10 +130,7 @@ def main(argv: list[str] | None = None) -> list[str]:
         rows += [{"model": name, **row} for row in resting_points(
             model, args.env, args.env_kwargs, tasks, k_values, args.n_support, args.seed)]
     if args.out is not None:
-        with args.out.open("w", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
+        write_csv_rows(rows, args.out)
     lines = [f"{n_one_waypoint} one-waypoint held-out tasks, {len(paths)} models, support {args.n_support} env steps",
              "", *summary_table(rows, k_values)]
     print("\n".join(lines))
