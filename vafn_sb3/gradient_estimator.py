@@ -18,16 +18,21 @@ from __future__ import annotations
 
 import copy
 import math
-import pickle
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
 
 from vafn_sb3.common.adaptation import seeded_torch_stream
-from vafn_sb3.target_inference import ESTIMATOR_READINGS, LearnedTargetEstimator, fit_minibatches
+from vafn_sb3.target_inference import (
+    ESTIMATOR_READINGS,
+    FirstReadingsEstimator,
+    LearnedTargetEstimator,
+    fit_minibatches,
+)
 
 __all__ = ["GradientTargetEstimator"]
 
@@ -35,7 +40,7 @@ __all__ = ["GradientTargetEstimator"]
 BASELINE_STEP_SIZES = tuple(float(step) for step in np.logspace(-3, 0.5, 15))
 
 
-class GradientTargetEstimator:
+class GradientTargetEstimator(FirstReadingsEstimator):
     """Infers a waypoint's target with ``steps`` gradient steps on a 3-number context (see the module docstring).
 
     :param n_readings: readings it reads (at least 4: fewer cannot determine a point in space).
@@ -47,12 +52,9 @@ class GradientTargetEstimator:
     def __init__(
         self, n_readings: int = ESTIMATOR_READINGS, hidden: Sequence[int] = (128, 128), steps: int = 20, seed: int = 0
     ) -> None:
-        if n_readings < 4:
-            raise ValueError(f"n_readings must be at least 4 (a point in space needs four distances), got {n_readings}")
+        super().__init__(n_readings, hidden)
         if steps < 0:
             raise ValueError(f"steps must be >= 0, got {steps}")
-        self.n_readings = int(n_readings)
-        self.hidden = tuple(int(size) for size in hidden)
         self.steps = int(steps)
         #: Whether :meth:`fit` meta-learned the start, the step sizes and the reading model (False: the baseline).
         self.meta = True
@@ -72,7 +74,11 @@ class GradientTargetEstimator:
         """Standardised move offsets ``(N, 3 (R - 1))`` and readings ``(N, R)`` of a batch (first ``R`` readings)."""
         n = self.n_readings
         features = LearnedTargetEstimator.features(np.asarray(points)[:, :n], np.asarray(distances)[:, :n])
-        n_offsets = 3 * (n - 1)
+        return self._standardised(features)
+
+    def _standardised(self, features: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`_inputs` of readings already turned into ``LearnedTargetEstimator.features``."""
+        n_offsets = 3 * (self.n_readings - 1)
         offsets = (features[:, :n_offsets] - self.stats["x_mean"]) / self.stats["x_std"]
         readings = (features[:, n_offsets:] - self.stats["r_mean"]) / self.stats["r_std"]
         return torch.as_tensor(offsets, dtype=torch.float32), torch.as_tensor(readings, dtype=torch.float32)
@@ -101,13 +107,6 @@ class GradientTargetEstimator:
         z = z.detach().double().numpy() * self.stats["z_std"] + self.stats["z_mean"]
         return np.asarray(points, dtype=np.float64)[:, 0] + z
 
-    def __call__(self, points: Sequence[np.ndarray], distances: Sequence[float]) -> np.ndarray | None:
-        """The target of one waypoint's readings (its first ``n_readings``), or None before that many."""
-        if len(points) < self.n_readings:
-            return None
-        n = self.n_readings
-        return self.predict(np.asarray(points[:n])[None], np.asarray(distances[:n])[None])[0]
-
     def with_steps(self, steps: int) -> GradientTargetEstimator:
         """A copy sharing the weights that takes ``steps`` gradient steps per inference."""
         if int(steps) < 0:
@@ -128,20 +127,15 @@ class GradientTargetEstimator:
         :data:`BASELINE_STEP_SIZES` with the smallest error after ``steps`` steps on these readings.
         :return: mean loss per epoch.
         """
-        points, targets = np.asarray(points, dtype=np.float64), np.asarray(targets, dtype=np.float64)
-        n = self.n_readings
-        points, distances = points[:, :n], np.asarray(distances, dtype=np.float64)[:, :n]
-        if not (len(points) == len(distances) == len(targets)) or len(points) < 2:
-            raise ValueError(f"need as many readings as targets, at least 2: {len(points)}, {len(distances)}, "
-                             f"{len(targets)}")
+        points, distances, targets = self._training_readings(points, distances, targets)
         features = LearnedTargetEstimator.features(points, distances)
         z = targets - points[:, 0]
-        n_offsets = 3 * (n - 1)
+        n_offsets = 3 * (self.n_readings - 1)
         self.stats = {"x_mean": features[:, :n_offsets].mean(0), "x_std": features[:, :n_offsets].std(0) + 1e-8,
                       "r_mean": features[:, n_offsets:].mean(0), "r_std": features[:, n_offsets:].std(0) + 1e-8,
                       "z_mean": z.mean(0), "z_std": z.std(0) + 1e-8}
         self.meta = bool(meta)
-        offsets, readings = self._inputs(points, distances)
+        offsets, readings = self._standardised(features)
         true_z = torch.as_tensor((z - self.stats["z_mean"]) / self.stats["z_std"], dtype=torch.float32)
         parameters = [*self.net.parameters(), *([self.start, self.log_step] if meta else [])]
 
@@ -170,12 +164,19 @@ class GradientTargetEstimator:
                 self.log_step.fill_(math.log(min(errors, key=errors.get)))
         return losses
 
-    def save(self, path: str | Path) -> None:
-        """Weights, start, step sizes, sizes and standardisation statistics in one ``torch.save`` file."""
-        stats = {key: torch.as_tensor(value, dtype=torch.float64) for key, value in self.stats.items()}
-        torch.save({"n_readings": self.n_readings, "hidden": list(self.hidden), "steps": self.steps, "meta": self.meta,
-                    "state_dict": self.net.state_dict(), "start": self.start.detach(),
-                    "log_step": self.log_step.detach(), "stats": stats}, path)
+    def _saved_extras(self) -> dict[str, Any]:
+        """The step count, whether it was meta-learned, the start and the step sizes."""
+        return {"steps": self.steps, "meta": self.meta, "start": self.start.detach(),
+                "log_step": self.log_step.detach()}
+
+    @classmethod
+    def _from_saved(cls, saved: dict[str, Any]) -> GradientTargetEstimator:
+        estimator = cls(saved["n_readings"], saved["hidden"], steps=saved["steps"])
+        with torch.no_grad():
+            estimator.start.copy_(saved["start"])
+            estimator.log_step.copy_(saved["log_step"])
+        estimator.meta = bool(saved["meta"])
+        return estimator
 
     @classmethod
     def load(cls, path: str | Path | None = None) -> GradientTargetEstimator:
@@ -187,15 +188,4 @@ class GradientTargetEstimator:
             from vafn_sb3.pretrained import PRETRAINED_GRADIENT_ESTIMATOR
 
             path = PRETRAINED_GRADIENT_ESTIMATOR
-        try:
-            saved = torch.load(path, map_location="cpu", weights_only=True)
-            estimator = cls(saved["n_readings"], saved["hidden"], steps=saved["steps"])
-            estimator.net.load_state_dict(saved["state_dict"])
-            with torch.no_grad():
-                estimator.start.copy_(saved["start"])
-                estimator.log_step.copy_(saved["log_step"])
-            estimator.meta = bool(saved["meta"])
-            estimator.stats = {key: value.double().numpy() for key, value in saved["stats"].items()}
-        except (OSError, KeyError, TypeError, RuntimeError, EOFError, pickle.UnpicklingError) as error:
-            raise ValueError(f"{path} is not a file of GradientTargetEstimator.save: {error}") from error
-        return estimator
+        return cls._load(path)

@@ -282,7 +282,73 @@ class GradientInferencePolicy(TargetInferencePolicy):
         return adapted
 
 
-class LearnedTargetEstimator:
+class FirstReadingsEstimator:
+    """What the target estimators share: they read a waypoint's first ``n_readings`` (position, distance) readings
+    and keep a network, its standardisation statistics and their sizes in one weights-only ``torch.save`` file.
+
+    Subclasses build ``self.net`` and ``self.stats`` and implement ``predict(points, distances)``.
+    """
+
+    net: nn.Module
+    stats: dict[str, np.ndarray]
+
+    def __init__(self, n_readings: int, hidden: Sequence[int]) -> None:
+        if n_readings < 4:
+            raise ValueError(f"n_readings must be at least 4 (a point in space needs four distances), got {n_readings}")
+        self.n_readings = int(n_readings)
+        self.hidden = tuple(int(size) for size in hidden)
+
+    def predict(self, points: np.ndarray, distances: np.ndarray) -> np.ndarray:
+        """Targets ``(N, 3)`` of a batch of readings ``points (N, R, 3)``, ``distances (N, R)``."""
+        raise NotImplementedError
+
+    def __call__(self, points: Sequence[np.ndarray], distances: Sequence[float]) -> np.ndarray | None:
+        """The target of one waypoint's readings (its first ``n_readings``), or None before that many."""
+        n = self.n_readings
+        if len(points) < n:
+            return None
+        return self.predict(np.asarray(points[:n])[None], np.asarray(distances[:n])[None])[0]
+
+    def _training_readings(
+        self, points: np.ndarray, distances: np.ndarray, targets: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``fit``'s arrays as float64, cut to the first ``n_readings`` (``ValueError`` if their lengths differ)."""
+        points, targets = np.asarray(points, dtype=np.float64), np.asarray(targets, dtype=np.float64)
+        points, distances = points[:, : self.n_readings], np.asarray(distances, dtype=np.float64)[:, : self.n_readings]
+        if not (len(points) == len(distances) == len(targets)) or len(points) < 2:
+            raise ValueError(f"need as many readings as targets, at least 2: {len(points)}, {len(distances)}, "
+                             f"{len(targets)}")
+        return points, distances, targets
+
+    def _saved_extras(self) -> dict[str, Any]:
+        """What a subclass saves besides the sizes, weights and statistics."""
+        return {}
+
+    def save(self, path: str | Path) -> None:
+        """Weights, layer sizes and standardisation statistics (and a subclass's extras) in one ``torch.save`` file."""
+        stats = {key: torch.as_tensor(value, dtype=torch.float64) for key, value in self.stats.items()}
+        torch.save({"n_readings": self.n_readings, "hidden": list(self.hidden), "state_dict": self.net.state_dict(),
+                    "stats": stats, **self._saved_extras()}, path)
+
+    @classmethod
+    def _from_saved(cls, saved: dict[str, Any]) -> FirstReadingsEstimator:
+        """An estimator of the saved sizes (a subclass also restores its extras here)."""
+        return cls(saved["n_readings"], saved["hidden"])
+
+    @classmethod
+    def _load(cls, path: str | Path) -> Any:
+        """The estimator :meth:`save` wrote to ``path`` (tensors and numbers only: a file carrying code is refused)."""
+        try:
+            saved = torch.load(path, map_location="cpu", weights_only=True)
+            estimator = cls._from_saved(saved)
+            estimator.net.load_state_dict(saved["state_dict"])
+            estimator.stats = {key: value.double().numpy() for key, value in saved["stats"].items()}
+        except (OSError, KeyError, TypeError, RuntimeError, EOFError, pickle.UnpicklingError) as error:
+            raise ValueError(f"{path} is not a file of {cls.__name__}.save: {error}") from error
+        return estimator
+
+
+class LearnedTargetEstimator(FirstReadingsEstimator):
     """A network from the first ``n_readings`` (position, distance) readings of a waypoint to its target.
 
     Input: the later positions relative to the first, the later distances relative to the first, and the first
@@ -296,10 +362,7 @@ class LearnedTargetEstimator:
     """
 
     def __init__(self, n_readings: int = ESTIMATOR_READINGS, hidden: Sequence[int] = (256, 256), seed: int = 0) -> None:
-        if n_readings < 4:
-            raise ValueError(f"n_readings must be at least 4 (a point in space needs four distances), got {n_readings}")
-        self.n_readings = int(n_readings)
-        self.hidden = tuple(int(size) for size in hidden)
+        super().__init__(n_readings, hidden)
         n_in = 4 * self.n_readings - 3
         sizes = [n_in, *self.hidden]
         with seeded_torch_stream(seed):  # building an estimator leaves the caller's torch stream alone
@@ -325,23 +388,12 @@ class LearnedTargetEstimator:
             y = self.net(torch.as_tensor(x, dtype=torch.float32)).double().numpy()
         return np.asarray(points, dtype=np.float64)[:, 0] + y * self.stats["y_std"] + self.stats["y_mean"]
 
-    def __call__(self, points: Sequence[np.ndarray], distances: Sequence[float]) -> np.ndarray | None:
-        """The target of one waypoint's readings (its first ``n_readings``), or None before that many."""
-        n = self.n_readings
-        if len(points) < n:
-            return None
-        return self.predict(np.asarray(points[:n])[None], np.asarray(distances[:n])[None])[0]
-
     def fit(
         self, points: np.ndarray, distances: np.ndarray, targets: np.ndarray, epochs: int = 200,
         batch_size: int = 256, lr: float = 1e-3, seed: int = 0, progress: bool = True,
     ) -> list[float]:
         """Regress ``targets (N, 3)`` on readings ``points (N, R, 3)``, ``distances (N, R)``; mean loss per epoch."""
-        points, targets = np.asarray(points, dtype=np.float64), np.asarray(targets, dtype=np.float64)
-        points, distances = points[:, : self.n_readings], np.asarray(distances)[:, : self.n_readings]
-        if not (len(points) == len(distances) == len(targets)) or len(points) < 2:
-            raise ValueError(f"need as many readings as targets, at least 2: {len(points)}, {len(distances)}, "
-                             f"{len(targets)}")
+        points, distances, targets = self._training_readings(points, distances, targets)
         x = self.features(points, distances)
         y = targets - points[:, 0]
         self.stats = {"x_mean": x.mean(0), "x_std": x.std(0) + 1e-8, "y_mean": y.mean(0), "y_std": y.std(0) + 1e-8}
@@ -350,12 +402,6 @@ class LearnedTargetEstimator:
         return fit_minibatches(list(self.net.parameters()),
                                lambda batch: nn.functional.mse_loss(self.net(x_t[batch]), y_t[batch]), len(x_t),
                                epochs, batch_size, lr, seed, "fitting the target estimator", progress)
-
-    def save(self, path: str | Path) -> None:
-        """Weights, layer sizes and standardisation statistics in one ``torch.save`` file."""
-        stats = {key: torch.as_tensor(value, dtype=torch.float64) for key, value in self.stats.items()}
-        torch.save({"n_readings": self.n_readings, "hidden": list(self.hidden), "state_dict": self.net.state_dict(),
-                    "stats": stats}, path)
 
     @classmethod
     def load(cls, path: str | Path | None = None) -> LearnedTargetEstimator:
@@ -368,14 +414,7 @@ class LearnedTargetEstimator:
             from vafn_sb3.pretrained import PRETRAINED_ESTIMATOR
 
             path = PRETRAINED_ESTIMATOR
-        try:
-            saved = torch.load(path, map_location="cpu", weights_only=True)
-            estimator = cls(saved["n_readings"], saved["hidden"])
-            estimator.net.load_state_dict(saved["state_dict"])
-            estimator.stats = {key: value.double().numpy() for key, value in saved["stats"].items()}
-        except (OSError, KeyError, TypeError, RuntimeError, EOFError, pickle.UnpicklingError) as error:
-            raise ValueError(f"{path} is not a file of LearnedTargetEstimator.save: {error}") from error
-        return estimator
+        return cls._load(path)
 
 
 class _TrilaterationAfter:
