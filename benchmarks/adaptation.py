@@ -71,12 +71,11 @@ from vafn_sb3.common.adaptation_curves import (  # noqa: E402
     aggregate_adaptation,
     plot_adaptation,
 )
-from vafn_sb3.gradient_estimator import GradientTargetEstimator  # noqa: E402
 from vafn_sb3.target_inference import (  # noqa: E402
     INFERENCE_MODES,
     GradientInferencePolicy,
-    LearnedTargetEstimator,
     TargetInferencePolicy,
+    load_estimator,
 )
 from vafn_sb3.loading import load_model, load_model_or_exit  # noqa: E402
 from zoo.registry import register_algorithms  # noqa: E402
@@ -87,9 +86,8 @@ METRICS = tuple(ADAPTATION_METRICS)
 #: How a method may be evaluated instead of adapting over K (all K = 0 only): as it is, or a goal-observing model run
 #: through TargetInferencePolicy with one of its inference settings ("infer-<setting>").
 MODES = ("zero-shot", *(f"infer-{inference}" for inference in INFERENCE_MODES))
-#: Inference settings that read an estimator file: the flag (its ``args`` attribute) and the estimator class.
-ESTIMATOR_FLAGS = {"learned": ("target_estimator", LearnedTargetEstimator),
-                   "gradient": ("gradient_estimator", GradientTargetEstimator)}
+#: Inference settings that read an estimator file, and the flag (its ``args`` attribute) that names the file.
+ESTIMATOR_FLAGS = {"learned": "target_estimator", "gradient": "gradient_estimator"}
 #: The reference policies every study includes (K = 0, no training).
 REFERENCES = ("scripted", "random")
 
@@ -159,8 +157,7 @@ def estimator_of(method: Method, args: argparse.Namespace) -> Any:
     """The estimator a target-inference method reads (from its flag's file, or the packaged one), or None."""
     if method.target_inference not in ESTIMATOR_FLAGS:
         return None
-    flag, estimator_class = ESTIMATOR_FLAGS[method.target_inference]
-    return estimator_class.load(getattr(args, flag))
+    return load_estimator(method.target_inference, getattr(args, ESTIMATOR_FLAGS[method.target_inference]))
 
 
 def evaluate_model(method: Method, path: Path, args: argparse.Namespace, tasks: list) -> list[dict]:
@@ -303,7 +300,7 @@ def estimator_record(method: Method, args: argparse.Namespace) -> dict[str, str]
     """``{flag: file}`` of the estimator a target-inference method read (``"packaged"``: the default), else ``{}``."""
     if method.target_inference not in ESTIMATOR_FLAGS:
         return {}
-    flag = ESTIMATOR_FLAGS[method.target_inference][0]
+    flag = ESTIMATOR_FLAGS[method.target_inference]
     return {flag: str(getattr(args, flag) or "packaged")}
 
 
@@ -361,7 +358,7 @@ def main(argv: list[str] | None = None) -> None:
         try:  # a bad file fails here, in one line, not in every worker
             estimator_of(method, args)
         except ValueError as error:
-            flag = ESTIMATOR_FLAGS[method.target_inference][0].replace("_", "-")
+            flag = ESTIMATOR_FLAGS[method.target_inference].replace("_", "-")
             raise SystemExit(f"--{flag}: {error}") from None
     for method in methods:  # likewise every model file, before any evaluation runs
         for path in method.paths:

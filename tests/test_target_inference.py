@@ -19,6 +19,7 @@ from vafn_sb3.target_inference import (
     LearnedTargetEstimator,
     TargetInferencePolicy,
     collect_waypoint_readings,
+    load_estimator,
 )
 
 HIDDEN = "VAFN/ThreeArmReachHidden-v1"
@@ -283,4 +284,8 @@ def test_gradient_inference_adapts_over_k_with_the_packaged_estimator(goal_oracl
         GradientInferencePolicy.for_env(goal_oracle, env, inference="probe")
     with pytest.raises(ValueError, match="needs a GradientTargetEstimator"):
         GradientInferencePolicy.for_env(goal_oracle, env, estimator=LearnedTargetEstimator())
+    assert isinstance(load_estimator("gradient"), GradientTargetEstimator)  # the one mode -> estimator mapping
+    assert isinstance(load_estimator("learned"), LearnedTargetEstimator)
+    with pytest.raises(ValueError, match="reads an estimator"):
+        load_estimator("probe")
     env.close()

@@ -49,7 +49,7 @@ from vafn_gym.layout import ArmLayout
 from vafn_sb3.common.adaptation import seeded_torch_stream
 
 __all__ = ["ESTIMATOR_READINGS", "INFERENCE_MODES", "GradientInferencePolicy", "LearnedTargetEstimator",
-           "TargetInferencePolicy", "collect_waypoint_readings"]
+           "TargetInferencePolicy", "collect_waypoint_readings", "load_estimator"]
 
 #: ``inference`` settings: probe moves then trilateration, trilateration of passive readings only, probe moves then
 #: a :class:`LearnedTargetEstimator`, probe moves then gradient steps of a ``GradientTargetEstimator``, no inference.
@@ -127,12 +127,8 @@ class TargetInferencePolicy:
         if estimator is not None and inference not in ESTIMATOR_MODES:
             raise ValueError(f"only inference in {ESTIMATOR_MODES} takes an estimator, not inference={inference!r}")
         self.inference = inference
-        if estimator is None and inference == "learned":
-            estimator = LearnedTargetEstimator.load()
-        elif estimator is None and inference == "gradient":
-            from vafn_sb3.gradient_estimator import GradientTargetEstimator  # it imports this module
-
-            estimator = GradientTargetEstimator.load()
+        if estimator is None and inference in ESTIMATOR_MODES:
+            estimator = load_estimator(inference)
         self.estimator = estimator
         #: Whether a newly active arm makes the probe moves.
         self.probes = inference in ("probe", *ESTIMATOR_MODES)
@@ -415,6 +411,17 @@ class LearnedTargetEstimator(FirstReadingsEstimator):
 
             path = PRETRAINED_ESTIMATOR
         return cls._load(path)
+
+
+def load_estimator(inference: str, path: str | Path | None = None) -> FirstReadingsEstimator:
+    """The estimator ``inference="learned"`` or ``"gradient"`` reads, from ``path`` (None: the packaged one)."""
+    if inference == "learned":
+        return LearnedTargetEstimator.load(path)
+    if inference == "gradient":
+        from vafn_sb3.gradient_estimator import GradientTargetEstimator  # it imports this module
+
+        return GradientTargetEstimator.load(path)
+    raise ValueError(f"only inference in {ESTIMATOR_MODES} reads an estimator, not inference={inference!r}")
 
 
 class _TrilaterationAfter:

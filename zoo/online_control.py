@@ -38,12 +38,11 @@ from vafn_gym.queue import PoissonArrivals, ScheduledArrivals  # noqa: E402
 from vafn_sb3 import load_pretrained  # noqa: E402
 from vafn_sb3.loading import family_mismatch, load_model, training_env  # noqa: E402
 from vafn_sb3.online import OnlineController  # noqa: E402
-from vafn_sb3.gradient_estimator import GradientTargetEstimator  # noqa: E402
 from vafn_sb3.target_inference import (  # noqa: E402
     ESTIMATOR_MODES,
     INFERENCE_MODES,
-    LearnedTargetEstimator,
     TargetInferencePolicy,
+    load_estimator,
 )
 from zoo.plot import plot_online_distances  # noqa: E402
 
@@ -134,8 +133,8 @@ def main(argv: list[str] | None = None) -> None:
         if args.policy is not None:
             parser.exit(2, "online_control.py: error: --infer-targets needs --model or --pretrained\n")
         try:
-            estimator_class = GradientTargetEstimator if args.infer_targets == "gradient" else LearnedTargetEstimator
-            estimator = None if args.target_estimator is None else estimator_class.load(args.target_estimator)
+            estimator = None if args.target_estimator is None else load_estimator(args.infer_targets,
+                                                                                   args.target_estimator)
             model = TargetInferencePolicy.for_env(model, env, inference=args.infer_targets, estimator=estimator)
         except ValueError as error:
             parser.exit(2, f"online_control.py: error: {error}\n")
