@@ -16,9 +16,9 @@ episode; ``infer-passive``: without the probe moves; ``infer-learned``: probe mo
 ``--target-estimator`` (default: the packaged one) instead of trilateration; ``infer-none``: the centre of the shared
 region as every goal), also at K = 0 only. ``infer-gradient`` makes the probe moves, then infers each target by K
 gradient steps of the ``--gradient-estimator`` (default: the packaged meta-learned one) on the waypoint's first
-readings (:class:`vafn_sb3.GradientInferencePolicy`): it runs at every K and collects no support set, its adaptation
-data are the probe moves inside the episode. The scripted controller (the ceiling) and a uniform random policy (the
-floor) run on the same tasks.
+readings (:class:`vafn_sb3.GradientInferencePolicy`), refined by ``--refine-steps`` more at every later reading: it
+runs at every K and collects no support set, its adaptation data are the waypoint's readings inside the episode.
+The scripted controller (the ceiling) and a uniform random policy (the floor) run on the same tasks.
 
 Writes to ``--out``: ``adaptation.csv`` (one row per method, seed, task and K), ``adaptation_summary.csv`` (per method
 and K: mean over seeds of the per-seed task means, with a 95 % Student-t half width over seeds),
@@ -73,6 +73,7 @@ from vafn_sb3.common.adaptation_curves import (  # noqa: E402
 )
 from vafn_sb3.target_inference import (  # noqa: E402
     INFERENCE_MODES,
+    REFINE_STEPS,
     GradientInferencePolicy,
     TargetInferencePolicy,
     load_estimator,
@@ -168,9 +169,11 @@ def evaluate_model(method: Method, path: Path, args: argparse.Namespace, tasks: 
     env_kwargs = {**args.env_kwargs, **method.env_kwargs}
     if method.target_inference is not None:
         estimator = estimator_of(method, args)
-        policy_class = GradientInferencePolicy if method.target_inference == "gradient" else TargetInferencePolicy
         env = gym.make(args.env, **env_kwargs)
-        model = policy_class.for_env(model, env, inference=method.target_inference, estimator=estimator)
+        if method.target_inference == "gradient":
+            model = GradientInferencePolicy.for_env(model, env, estimator=estimator, refine_steps=args.refine_steps)
+        else:
+            model = TargetInferencePolicy.for_env(model, env, inference=method.target_inference, estimator=estimator)
         env.close()
     rows = evaluate_adaptation(model, args.env, tasks, n_support=args.n_support,
                                k_values=[0] if method.zero_shot else args.k, n_eval_episodes=args.n_eval_episodes,
@@ -301,7 +304,10 @@ def estimator_record(method: Method, args: argparse.Namespace) -> dict[str, str]
     if method.target_inference not in ESTIMATOR_FLAGS:
         return {}
     flag = ESTIMATOR_FLAGS[method.target_inference]
-    return {flag: str(getattr(args, flag) or "packaged")}
+    record = {flag: str(getattr(args, flag) or "packaged")}
+    if method.target_inference == "gradient":
+        record["refine_steps"] = args.refine_steps
+    return record
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -319,6 +325,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--gradient-estimator", type=Path, default=None,
                         help="GradientTargetEstimator file of infer-gradient methods (benchmarks/target_estimator.py "
                              "--estimator gradient; None: the packaged estimator)")
+    parser.add_argument("--refine-steps", type=int, default=REFINE_STEPS,
+                        help="infer-gradient: gradient steps per later reading that refine the estimate (0: estimate "
+                             "once from the first readings)")
     parser.add_argument("--min-length", type=int, default=1, help="shortest test instruction")
     parser.add_argument("--max-length", type=int, default=4, help="longest test instruction")
     parser.add_argument("--n-tasks", type=int, default=30, help="held-out test instructions")
@@ -353,6 +362,8 @@ def main(argv: list[str] | None = None) -> None:
         print(replot(args.out, args.title))
         return
     torch.set_num_threads(1)
+    if args.refine_steps < 0:
+        raise SystemExit(f"--refine-steps must be >= 0, got {args.refine_steps}")
     methods = [Method.parse(fields) for fields in args.method]
     for method in methods:
         try:  # a bad file fails here, in one line, not in every worker

@@ -45,7 +45,7 @@ from vafn_sb3 import (  # noqa: E402
     load_pretrained,
 )
 from vafn_sb3.loading import load_model  # noqa: E402
-from vafn_sb3.target_inference import ESTIMATOR_READINGS  # noqa: E402
+from vafn_sb3.target_inference import ESTIMATOR_READINGS, REFINE_STEPS  # noqa: E402
 from zoo.registry import register_algorithms  # noqa: E402
 
 #: Reset seeds of the collection episodes (train and test episodes never share one).
@@ -73,18 +73,33 @@ def trilaterated(readings: dict[str, np.ndarray]) -> np.ndarray:
     return np.array([np.full(3, np.nan) if row is None else row for row in rows])
 
 
+def load_readings(path: Path, flag: str) -> tuple[dict, dict]:
+    """The train and test readings of a ``readings.npz`` this benchmark saved (``SystemExit`` naming ``flag``)."""
+    try:
+        with np.load(path) as saved:
+            split = {name: {key.split("/", 1)[1]: saved[key] for key in saved.files if key.startswith(name + "/")}
+                     for name in ("train", "test")}
+        if any(set(split[name]) != {"points", "distances", "targets", "arms"} for name in split):
+            raise ValueError("it lacks train/ or test/ points, distances, targets and arms")
+    except (OSError, ValueError) as error:
+        raise SystemExit(f"{flag} {path}: not a readings file of this benchmark ({error})") from None
+    return split["train"], split["test"]
+
+
+def refined(estimator: GradientTargetEstimator, readings: dict[str, np.ndarray], refine_steps: int) -> np.ndarray:
+    """Estimates after every reading of each row, refined as ``GradientInferencePolicy`` does it reading by reading."""
+    n = estimator.n_readings
+    estimates = estimator.predict(readings["points"], readings["distances"])
+    for row, (points, distances) in enumerate(zip(readings["points"], readings["distances"])):
+        for count in range(n + 1, len(points) + 1):
+            estimates[row] = estimator.refine(points[:count], distances[:count], estimates[row], refine_steps)
+    return estimates
+
+
 def collect_or_load(args: argparse.Namespace, model: Any) -> tuple[dict, dict, float | None]:
     """Train and test readings: from ``--readings`` (no collection CPU time), or collected and saved to ``--out``."""
     if args.readings is not None:
-        try:
-            with np.load(args.readings) as saved:
-                split = {name: {key.split("/", 1)[1]: saved[key] for key in saved.files if key.startswith(name + "/")}
-                         for name in ("train", "test")}
-            if any(set(split[name]) != {"points", "distances", "targets", "arms"} for name in split):
-                raise ValueError("it lacks train/ or test/ points, distances, targets and arms")
-        except (OSError, ValueError) as error:
-            raise SystemExit(f"--readings {args.readings}: not a readings file of this benchmark ({error})") from None
-        return split["train"], split["test"], None
+        return (*load_readings(args.readings, "--readings"), None)
     benchmark = InstructionBenchmark(args.env, max_length=args.max_length, n_test=args.test_tasks,
                                      env_kwargs=args.env_kwargs, n_train=args.train_tasks)
     env = benchmark.make_env()
@@ -132,10 +147,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         help="gradient steps at which the gradient estimators' held-out error is reported")
     parser.add_argument("--readings", type=Path, default=None,
                         help="readings.npz of an earlier run to train on instead of collecting")
+    parser.add_argument("--refine-readings", type=Path, default=None,
+                        help="with --estimator gradient: readings.npz of a run with many readings per waypoint (e.g. "
+                             "--n-readings 24) to fit the estimator's refinement model on; its test split measures the "
+                             "refined error")
     parser.add_argument("--hidden", type=int, nargs="+", default=None,
                         help="hidden layer sizes (None: 256 256 for regression, 128 128 for the gradient estimators)")
     parser.add_argument("--epochs", type=int, default=200, help="passes over the training readings")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="one estimator per seed (initial weights)")
+    parser.add_argument("--seeds", type=int, nargs="*", default=[0],
+                        help="one estimator per seed (initial weights); none: only collect the readings")
     parser.add_argument("--out", type=Path, default=Path("runs/target_estimator"), help="output folder")
     args = parser.parse_args(argv)
     if args.train_tasks < 1 or args.test_tasks < 1:
@@ -144,6 +164,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         parser.error("--n-readings must be at least 4 (a point in space needs four distances)")
     if args.steps < 0 or min(args.report_k) < 0:
         parser.error("--steps and --report-k must be >= 0")
+    if args.refine_readings is not None and args.estimator != "gradient":
+        parser.error("--refine-readings fits the refinement model of --estimator gradient")
     prefix, default_hidden = ESTIMATORS[args.estimator]
     args.hidden = args.hidden or default_hidden
     torch.set_num_threads(1)
@@ -153,6 +175,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             model = goal_policy(args)
         except (ValueError, FileNotFoundError) as error:
             parser.error(f"--model: {error}")
+    refine_train, refine_test = ({}, {}) if args.refine_readings is None else load_readings(args.refine_readings,
+                                                                                            "--refine-readings")
     args.out.mkdir(parents=True, exist_ok=True)
     train, test, collect_cpu_s = collect_or_load(args, model)
     report: dict[str, Any] = {
@@ -169,6 +193,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     gradient = args.estimator != "regression"
     if gradient:
         report["steps"] = args.steps
+    if refine_train:
+        report["refinement"] = {"readings": str(args.refine_readings), "train_readings": len(refine_train["points"]),
+                                "test_readings": len(refine_test["points"]),
+                                "readings_per_waypoint": refine_train["points"].shape[1], "refine_steps": REFINE_STEPS}
     for seed in args.seeds:
         start = time.process_time()
         if gradient:
@@ -178,6 +206,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         else:
             estimator = LearnedTargetEstimator(args.n_readings, args.hidden, seed=seed)
             losses = estimator.fit(train["points"], train["distances"], train["targets"], epochs=args.epochs, seed=seed)
+        if refine_train:
+            estimator.fit_refinement(refine_train["points"], refine_train["distances"], refine_train["targets"],
+                                     epochs=args.epochs, seed=seed)
         fit_cpu_s = time.process_time() - start
         estimator.save(args.out / f"{prefix}_seed{seed}.pt")
         report["learned"][str(seed)] = {
@@ -189,6 +220,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             report["learned"][str(seed)]["test_by_k"] = {
                 str(k): error_stats(estimator.predict(test["points"], test["distances"], steps=k), test["targets"])
                 for k in args.report_k}
+        if refine_test:  # the first estimate from the first readings, then refined at every later one
+            report["learned"][str(seed)]["test_refined"] = {
+                "first": error_stats(estimator.predict(refine_test["points"], refine_test["distances"]),
+                                     refine_test["targets"]),
+                "refined": error_stats(refined(estimator, refine_test, REFINE_STEPS), refine_test["targets"])}
     (args.out / f"{prefix}.json").write_text(json.dumps(report, indent=2))
 
     if gradient:
@@ -199,6 +235,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         for seed, entry in report["learned"].items():
             cells = [f"{stats['median_cm']:.2f}, {stats['within_tolerance']:.3f}"
                      for stats in entry["test_by_k"].values()]
+            print(f"| {seed} | {' | '.join(cells)} |")
+        print()
+    if refine_train:
+        print(f"refinement: {report['refinement']['test_readings']} held-out waypoints with "
+              f"{report['refinement']['readings_per_waypoint']} readings each; error (median cm, share within the "
+              f"success tolerance) from the first readings, and after refining at every later reading\n")
+        print("| seed | first estimate | refined |\n|---|---|---|")
+        for seed, entry in report["learned"].items():
+            cells = [f"{stats['median_cm']:.2f}, {stats['within_tolerance']:.3f}"
+                     for stats in entry["test_refined"].values()]
             print(f"| {seed} | {' | '.join(cells)} |")
         print()
     print(f"{report['train_readings']} training waypoints ({args.train_tasks} train-split instructions), "

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from vafn_sb3 import MTSAC, SAC, GradientTargetEstimator, LearnedTargetEstimator
+from vafn_sb3.target_inference import REFINE_STEPS
 
 ROOT = Path(__file__).resolve().parents[1]
 HIDDEN = "VAFN/ThreeArmReachHidden-v1"
@@ -118,6 +119,7 @@ def test_study_end_to_end(study, tmp_path, monkeypatch, workers):
     assert [m.get("target_estimator") for m in meta["methods"]] == [None, None, None, str(models / "estimator.pt"),
                                                                      None]
     assert meta["methods"][-1]["gradient_estimator"] == str(models / "gradient.pt")
+    assert meta["methods"][-1]["refine_steps"] == REFINE_STEPS  # recorded: it changes what infer-gradient does
     assert all(r["support_arms"] == "nan" for r in rows if r["method"] == "gradient")  # adapts on no support set
 
 
@@ -132,6 +134,8 @@ def test_learned_inference_needs_a_readable_estimator(study, tmp_path):
     gradient = ["--method", "gradient", "sac", str(tmp_path / "goal_seed*.zip"), "infer-gradient"]
     with pytest.raises(SystemExit, match="--gradient-estimator: .*GradientTargetEstimator.save"):
         study["main"]([*gradient, "--gradient-estimator", str(tmp_path / "estimator.pt"), "--out", str(tmp_path / "o")])
+    with pytest.raises(SystemExit, match="--refine-steps must be >= 0"):
+        study["main"]([*gradient, "--refine-steps", "-1", "--out", str(tmp_path / "o")])
 
 
 def test_a_file_that_is_not_a_model_stops_the_study_before_it_evaluates(study, tmp_path):

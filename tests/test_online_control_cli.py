@@ -78,6 +78,11 @@ def test_online_control_runs_the_packaged_goal_observing_policy_on_hidden_target
     with (tmp_path / "online_log.csv").open() as handle:
         (row,) = csv.DictReader(handle)
     assert row["outcome"] == "completed" and row["success"] == "True" and row["collisions"] == "0"
+    if inference == "gradient":
+        with pytest.raises(SystemExit) as exit_info:
+            online_control.main(["--pretrained", "mappo", "--infer-targets", "gradient", "--refine-steps", "-1",
+                                 "--out", str(tmp_path)])
+        assert exit_info.value.code == 2
 
 
 def test_task_family_covers_the_frame_and_what_a_waiting_arm_observes() -> None:

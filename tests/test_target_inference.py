@@ -15,6 +15,7 @@ from vafn_gym.controllers import PROBE_DIRECTIONS
 from vafn_sb3.common.adaptation import evaluate_adaptation
 from vafn_sb3.gradient_estimator import BASELINE_STEP_SIZES, GradientTargetEstimator
 from vafn_sb3.target_inference import (
+    REFINE_STEPS,
     GradientInferencePolicy,
     LearnedTargetEstimator,
     TargetInferencePolicy,
@@ -207,11 +208,22 @@ def test_target_estimator_benchmark_writes_estimators_and_errors(load_benchmark,
         with pytest.raises(SystemExit):
             module.main([*bad, "--out", str(tmp_path)])
     # the gradient estimators train on the saved readings without collecting again, and report every K
+    # (the eight readings per waypoint also fit the refinement model, whose refined error is reported)
     gradient = module.main(["--estimator", "gradient", "--readings", str(tmp_path / "readings.npz"), "--steps", "2",
-                            "--report-k", "0", "2", "--epochs", "2", "--hidden", "8", "--out", str(tmp_path / "g")])
+                            "--report-k", "0", "2", "--epochs", "2", "--hidden", "8", "--out", str(tmp_path / "g"),
+                            "--refine-readings", str(tmp_path / "readings.npz")])
     assert gradient["collect_cpu_s"] is None and gradient["train_readings"] == report["train_readings"]
     assert set(gradient["learned"]["0"]["test_by_k"]) == {"0", "2"}
-    assert GradientTargetEstimator.load(tmp_path / "g" / "gradient_estimator_seed0.pt").steps == 2
+    assert set(gradient["learned"]["0"]["test_refined"]) == {"first", "refined"}
+    assert gradient["refinement"]["readings_per_waypoint"] == 8
+    loaded = GradientTargetEstimator.load(tmp_path / "g" / "gradient_estimator_seed0.pt")
+    assert loaded.steps == 2 and loaded.reading_net is not None
+    with pytest.raises(SystemExit):  # only the gradient estimator has a refinement model
+        module.main(["--readings", str(tmp_path / "readings.npz"), "--refine-readings", str(tmp_path / "readings.npz"),
+                     "--out", str(tmp_path / "r")])
+    collected = module.main(["--train-tasks", "1", "--test-tasks", "1", "--max-length", "2", "--seeds",
+                             "--out", str(tmp_path / "c")])  # no seed: collect the readings only
+    assert collected["learned"] == {} and (tmp_path / "c" / "readings.npz").is_file()
     (tmp_path / "bad.npz").write_bytes(b"not readings")
     with pytest.raises(SystemExit, match="--readings"):
         module.main(["--estimator", "gradient", "--readings", str(tmp_path / "bad.npz"), "--out", str(tmp_path / "b")])
@@ -276,6 +288,11 @@ def test_gradient_inference_adapts_over_k_with_the_packaged_estimator(goal_oracl
     assert metadata["kind"] == "GradientTargetEstimator" and metadata["meta"] is True
     adapted = policy.adapt(env, k=10)
     assert adapted.estimator.steps == 10 and policy.estimator.steps == 0 and adapted.support is None
+    # the packaged estimator refines at every later reading once adapted; K = 0 adapts nothing, refinement included
+    assert adapted.refines and not policy.refines and adapted.refine_steps == REFINE_STEPS
+    assert not GradientInferencePolicy.for_env(goal_oracle, env, steps=10, refine_steps=0).refines
+    with pytest.raises(ValueError, match="refine_steps must be >= 0"):
+        GradientInferencePolicy.for_env(goal_oracle, env, refine_steps=-1)
     tasks = InstructionBenchmark(HIDDEN, 1, 2, n_test=4).test_tasks
     rows = evaluate_adaptation(policy, HIDDEN, tasks, n_support=0, k_values=[0, 10])
     success = {k: np.mean([row["success_rate"] for row in rows if row["k"] == k]) for k in (0, 10)}
@@ -289,3 +306,41 @@ def test_gradient_inference_adapts_over_k_with_the_packaged_estimator(goal_oracl
     with pytest.raises(ValueError, match="reads an estimator"):
         load_estimator("probe")
     env.close()
+
+
+def synthetic_approaches(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Twelve readings per row: a random start, then 2 cm moves toward the target with 3 cm of sideways noise."""
+    rng = np.random.default_rng(seed)
+    targets = rng.uniform(-0.3, 0.3, (n, 3))
+    points = [rng.uniform(-0.3, 0.3, (n, 3))]
+    for _ in range(11):
+        heading = targets - points[-1]
+        heading /= np.linalg.norm(heading, axis=1, keepdims=True) + 1e-9
+        points.append(points[-1] + 0.02 * heading + rng.normal(0.0, 0.03, (n, 3)))
+    points = np.stack(points, axis=1)
+    return points, np.linalg.norm(points - targets[:, None], axis=2), targets
+
+
+def test_gradient_estimator_refines_an_estimate_on_later_readings(tmp_path):
+    points, distances, targets = synthetic_approaches(1600, seed=0)
+    estimator = GradientTargetEstimator(hidden=(8,), steps=2)
+    with pytest.raises(ValueError, match="no refinement model"):
+        estimator.refine(points[0], distances[0], targets[0], steps=1)
+    estimator.save(tmp_path / "without.pt")  # a file without refinement (as saved before it existed) loads as such
+    assert GradientTargetEstimator.load(tmp_path / "without.pt").reading_net is None
+    losses = estimator.fit_refinement(points[:1500], distances[:1500], targets[:1500], hidden=(64, 64), epochs=60,
+                                      progress=False)
+    assert losses[-1] < 0.1 * losses[0]
+    rng = np.random.default_rng(1)
+    starts = targets[1500:] + rng.normal(0.0, 0.05, (100, 3))  # first estimates about 8 cm off
+    refined = np.array([estimator.refine(p, d, start, steps=200)
+                        for p, d, start in zip(points[1500:], distances[1500:], starts)])
+    before, after = (np.median(np.linalg.norm(e - targets[1500:], axis=1)) for e in (starts, refined))
+    assert after < 0.5 * before, (before, after)
+    assert np.allclose(estimator.refine(points[1500], distances[1500], starts[0], steps=0), starts[0])
+    estimator.save(tmp_path / "with.pt")
+    loaded = GradientTargetEstimator.load(tmp_path / "with.pt")
+    assert np.allclose(loaded.refine(points[1500], distances[1500], starts[0], steps=5),
+                       estimator.refine(points[1500], distances[1500], starts[0], steps=5))
+    with pytest.raises(ValueError, match="need points"):
+        estimator.fit_refinement(points[:, 0], distances, targets)

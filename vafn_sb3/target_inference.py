@@ -48,8 +48,8 @@ from vafn_gym.controllers import PROBE_DIRECTIONS, trilaterate
 from vafn_gym.layout import ArmLayout
 from vafn_sb3.common.adaptation import seeded_torch_stream
 
-__all__ = ["ESTIMATOR_READINGS", "INFERENCE_MODES", "GradientInferencePolicy", "LearnedTargetEstimator",
-           "TargetInferencePolicy", "collect_waypoint_readings", "load_estimator"]
+__all__ = ["ESTIMATOR_READINGS", "INFERENCE_MODES", "REFINE_STEPS", "GradientInferencePolicy",
+           "LearnedTargetEstimator", "TargetInferencePolicy", "collect_waypoint_readings", "load_estimator"]
 
 #: ``inference`` settings: probe moves then trilateration, trilateration of passive readings only, probe moves then
 #: a :class:`LearnedTargetEstimator`, probe moves then gradient steps of a ``GradientTargetEstimator``, no inference.
@@ -59,6 +59,9 @@ ESTIMATOR_MODES = ("learned", "gradient")
 #: Readings a :class:`LearnedTargetEstimator` reads by default: the first and one after each probe move, which do not
 #: depend on the policy it serves (later ones do: an estimator trained on them is tied to one policy).
 ESTIMATOR_READINGS = 4
+
+#: Gradient steps per later reading with which ``GradientInferencePolicy`` refines its estimate by default.
+REFINE_STEPS = 5
 
 #: Readings of one waypoint closer than this (metres) to the previous one are not recorded.
 MIN_SEPARATION = 1e-3
@@ -239,11 +242,15 @@ class GradientInferencePolicy(TargetInferencePolicy):
     """:class:`TargetInferencePolicy` with ``inference="gradient"``, adaptable: ``adapt(k=K)`` sets the gradient steps.
 
     Its own estimator takes ``steps`` steps (0: the meta-learned start, i.e. this method unadapted). ``adapt`` collects
-    no support set: the data each step adapts on are the waypoint's own first readings (the probe moves, inside the
-    episode), so ``n_support`` is ignored and the adapted policy has ``support = None``.
+    no support set: the data each step adapts on are the waypoint's own readings (the probe moves, inside the
+    episode), so ``n_support`` is ignored and the adapted policy has ``support = None``. When the estimator has a
+    refinement model (the packaged one has), every later reading of the waypoint adds ``refine_steps`` gradient steps
+    on all its readings so far (:meth:`~vafn_sb3.gradient_estimator.GradientTargetEstimator.refine`); with ``steps = 0``
+    nothing adapts, refinement included.
 
     :param estimator: a :class:`~vafn_sb3.gradient_estimator.GradientTargetEstimator`; None: the packaged one.
     :param steps: gradient steps per waypoint of this policy's estimator.
+    :param refine_steps: gradient steps per later reading (0, or an estimator without a refinement model: none).
     """
 
     #: No support set: the adapted policies adapt on the episode's own readings.
@@ -251,23 +258,43 @@ class GradientInferencePolicy(TargetInferencePolicy):
 
     def __init__(self, model: Any, homes: Mapping[int, np.ndarray], priors: Mapping[int, np.ndarray],
                  inference: str = "gradient", waiting_goal: str = "target", estimator: Any = None,
-                 steps: int = 0) -> None:
+                 steps: int = 0, refine_steps: int = REFINE_STEPS) -> None:
         if inference != "gradient":
             raise ValueError(f"GradientInferencePolicy infers by gradient steps, not inference={inference!r}")
         if estimator is not None and not callable(getattr(estimator, "with_steps", None)):
             raise ValueError(f"GradientInferencePolicy needs a GradientTargetEstimator (with with_steps), got "
                              f"{type(estimator).__name__}")
+        if refine_steps < 0:
+            raise ValueError(f"refine_steps must be >= 0, got {refine_steps}")
         super().__init__(model, homes, priors, inference="gradient", waiting_goal=waiting_goal, estimator=estimator)
         self.estimator = self.estimator.with_steps(steps)
+        self.refine_steps = int(refine_steps)
 
     @classmethod
     def for_env(
-        cls, model: Any, env: gym.Env, inference: str = "gradient", estimator: Any = None, steps: int = 0
+        cls, model: Any, env: gym.Env, inference: str = "gradient", estimator: Any = None, steps: int = 0,
+        refine_steps: int = REFINE_STEPS,
     ) -> GradientInferencePolicy:
         """A policy for ``env`` (a hidden-target :class:`MultiArmEnv`, any wrapper, ``history=1``)."""
         policy = super().for_env(model, env, inference=inference, estimator=estimator)
-        policy.estimator = policy.estimator.with_steps(steps)
+        if refine_steps < 0:
+            raise ValueError(f"refine_steps must be >= 0, got {refine_steps}")
+        policy.estimator, policy.refine_steps = policy.estimator.with_steps(steps), int(refine_steps)
         return policy
+
+    @property
+    def refines(self) -> bool:
+        """Whether later readings refine the estimate (steps and refine_steps > 0, and a refinement model)."""
+        has_model = getattr(self.estimator, "reading_net", None) is not None
+        return self.estimator.steps > 0 and self.refine_steps > 0 and has_model
+
+    def _record(self, active: int, position: np.ndarray, distance: float) -> None:
+        estimated = self._estimate is not None
+        n_points = len(self._points)
+        super()._record(active, position, distance)
+        # a new reading of a waypoint already estimated (not a repeated point, not a new waypoint) refines it
+        if self.refines and estimated and self._estimate is not None and len(self._points) > n_points:
+            self._estimate = self.estimator.refine(self._points, self._distances, self._estimate, self.refine_steps)
 
     def adapt(self, env: gym.Env, task: Any = None, n_support: int = 0, k: int = 1,
               seed: int | None = None) -> GradientInferencePolicy:

@@ -41,6 +41,8 @@ from vafn_sb3.online import OnlineController  # noqa: E402
 from vafn_sb3.target_inference import (  # noqa: E402
     ESTIMATOR_MODES,
     INFERENCE_MODES,
+    REFINE_STEPS,
+    GradientInferencePolicy,
     TargetInferencePolicy,
     load_estimator,
 )
@@ -92,6 +94,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--target-estimator", type=Path, default=None,
                         help="estimator file for --infer-targets learned or gradient (benchmarks/target_estimator.py, "
                              "its --estimator regression or gradient; None: the packaged estimator)")
+    parser.add_argument("--refine-steps", type=int, default=REFINE_STEPS,
+                        help="--infer-targets gradient: gradient steps per later reading that refine the estimate "
+                             "(0: estimate once)")
     parser.add_argument("--n-support", type=int, default=25, help="support transitions per instruction (twin env)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the arrivals, support rollouts and env")
     parser.add_argument("--out", type=Path, default=Path("runs/online"),
@@ -133,9 +138,14 @@ def main(argv: list[str] | None = None) -> None:
         if args.policy is not None:
             parser.exit(2, "online_control.py: error: --infer-targets needs --model or --pretrained\n")
         try:
-            estimator = None if args.target_estimator is None else load_estimator(args.infer_targets,
-                                                                                   args.target_estimator)
-            model = TargetInferencePolicy.for_env(model, env, inference=args.infer_targets, estimator=estimator)
+            if args.infer_targets == "gradient":  # the estimator's own step count, refined at every later reading
+                estimator = load_estimator("gradient", args.target_estimator)
+                model = GradientInferencePolicy.for_env(model, env, estimator=estimator, steps=estimator.steps,
+                                                        refine_steps=args.refine_steps)
+            else:
+                estimator = None if args.target_estimator is None else load_estimator(args.infer_targets,
+                                                                                       args.target_estimator)
+                model = TargetInferencePolicy.for_env(model, env, inference=args.infer_targets, estimator=estimator)
         except ValueError as error:
             parser.exit(2, f"online_control.py: error: {error}\n")
     if args.policy is None:
