@@ -148,9 +148,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--readings", type=Path, default=None,
                         help="readings.npz of an earlier run to train on instead of collecting")
     parser.add_argument("--refine-readings", type=Path, default=None,
-                        help="with --estimator gradient: readings.npz of a run with many readings per waypoint (e.g. "
-                             "--n-readings 24) to fit the estimator's refinement model on; its test split measures the "
-                             "refined error")
+                        help="with --estimator gradient(-plain): readings.npz of a run with many readings per "
+                             "waypoint (e.g. --n-readings 24) to fit the estimator's refinement model on; its test "
+                             "split measures the refined error")
     parser.add_argument("--hidden", type=int, nargs="+", default=None,
                         help="hidden layer sizes (None: 256 256 for regression, 128 128 for the gradient estimators)")
     parser.add_argument("--epochs", type=int, default=200, help="passes over the training readings")
@@ -164,8 +164,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         parser.error("--n-readings must be at least 4 (a point in space needs four distances)")
     if args.steps < 0 or min(args.report_k) < 0:
         parser.error("--steps and --report-k must be >= 0")
-    if args.refine_readings is not None and args.estimator != "gradient":
-        parser.error("--refine-readings fits the refinement model of --estimator gradient")
+    if args.refine_readings is not None and args.estimator == "regression":
+        parser.error("--refine-readings fits the refinement model of the gradient estimators")
     prefix, default_hidden = ESTIMATORS[args.estimator]
     args.hidden = args.hidden or default_hidden
     torch.set_num_threads(1)

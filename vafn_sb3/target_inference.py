@@ -138,11 +138,9 @@ class TargetInferencePolicy:
         self.waiting_goal = waiting_goal
         self.reset()
 
-    @classmethod
-    def for_env(
-        cls, model: Any, env: gym.Env, inference: str = "probe", estimator: Any = None
-    ) -> TargetInferencePolicy:
-        """A policy for ``env`` (a hidden-target :class:`MultiArmEnv`, any wrapper, ``history=1``)."""
+    @staticmethod
+    def env_frame(env: gym.Env) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], str]:
+        """``homes``, ``priors`` and ``waiting_goal`` of ``env`` (a hidden-target env, any wrapper, ``history=1``)."""
         base = env.unwrapped
         if base.observe_goal or base.history != 1:
             raise ValueError(
@@ -152,7 +150,15 @@ class TargetInferencePolicy:
         centre = np.array([0.0, 0.0, float(np.mean(base.layout.shared_z_range))])
         homes = {arm: base.observed_point(arm, arm_obj.home) for arm, arm_obj in base.arms.items()}
         priors = {arm: base.observed_point(arm, centre) for arm in base.arms}
-        return cls(model, homes, priors, inference=inference, waiting_goal=base.waiting_goal, estimator=estimator)
+        return homes, priors, base.waiting_goal
+
+    @classmethod
+    def for_env(
+        cls, model: Any, env: gym.Env, inference: str = "probe", estimator: Any = None
+    ) -> TargetInferencePolicy:
+        """A policy for ``env`` (a hidden-target :class:`MultiArmEnv`, any wrapper, ``history=1``)."""
+        homes, priors, waiting_goal = cls.env_frame(env)
+        return cls(model, homes, priors, inference=inference, waiting_goal=waiting_goal, estimator=estimator)
 
     def reset(self) -> None:
         """Forget every reading and estimate (call at every episode start; ``run_episode`` does)."""
@@ -276,11 +282,9 @@ class GradientInferencePolicy(TargetInferencePolicy):
         refine_steps: int = REFINE_STEPS,
     ) -> GradientInferencePolicy:
         """A policy for ``env`` (a hidden-target :class:`MultiArmEnv`, any wrapper, ``history=1``)."""
-        policy = super().for_env(model, env, inference=inference, estimator=estimator)
-        if refine_steps < 0:
-            raise ValueError(f"refine_steps must be >= 0, got {refine_steps}")
-        policy.estimator, policy.refine_steps = policy.estimator.with_steps(steps), int(refine_steps)
-        return policy
+        homes, priors, waiting_goal = cls.env_frame(env)
+        return cls(model, homes, priors, inference=inference, waiting_goal=waiting_goal, estimator=estimator,
+                   steps=steps, refine_steps=refine_steps)
 
     @property
     def refines(self) -> bool:
