@@ -344,3 +344,7 @@ def test_gradient_estimator_refines_an_estimate_on_later_readings(tmp_path):
                        estimator.refine(points[1500], distances[1500], starts[0], steps=5))
     with pytest.raises(ValueError, match="need points"):
         estimator.fit_refinement(points[:, 0], distances, targets)
+    # readings far from any it was fitted on (an arm that wandered off) move the estimate at most 5 cm a step
+    far = points[1500] * 50.0
+    moved = estimator.refine(far, distances[1500] * 50.0, starts[0], steps=10)
+    assert np.isfinite(moved).all() and np.linalg.norm(moved - starts[0]) <= 10 * 0.05 + 1e-6

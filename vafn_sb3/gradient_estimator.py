@@ -48,6 +48,9 @@ REFINE_SCALE = 0.1
 #: Step size of a refinement step, in units of :data:`REFINE_SCALE`.
 REFINE_STEP_SIZE = 0.01
 
+#: Longest refinement step, in units of :data:`REFINE_SCALE` (5 cm): a longer one is shortened to it.
+REFINE_MAX_STEP = 0.5
+
 #: Step sizes the ``meta=False`` baseline chooses its one step size from (standardised units).
 BASELINE_STEP_SIZES = tuple(float(step) for step in np.logspace(-3, 0.5, 15))
 
@@ -225,7 +228,11 @@ class GradientTargetEstimator(FirstReadingsEstimator):
                 z = z.detach().requires_grad_(True)
                 predicted = self.reading_net(torch.cat([offsets, z.expand(len(offsets), 3)], dim=1))[:, 0]
                 (gradient,) = torch.autograd.grad(((predicted - readings) ** 2).sum(), z)
-                z = z - REFINE_STEP_SIZE * gradient
+                step = REFINE_STEP_SIZE * gradient
+                if not torch.isfinite(step).all():
+                    break
+                # readings far from any the model was fitted on (an arm that wandered) can give huge gradients
+                z = z - step * min(1.0, REFINE_MAX_STEP / max(step.norm().item(), 1e-12))
         return points[0] + z.detach().double().numpy() * REFINE_SCALE
 
     def _saved_extras(self) -> dict[str, Any]:
