@@ -33,21 +33,20 @@ import numpy as np
 import torch
 from torch import nn
 
-from vafn_sb3.common.adaptation import seeded_torch_stream
 from vafn_sb3.target_inference import (
     ESTIMATOR_READINGS,
     FirstReadingsEstimator,
     LearnedTargetEstimator,
     fit_minibatches,
+    seeded_mlp,
 )
 
-__all__ = ["REFINE_SCALE", "REFINE_STEP_SIZE", "GradientTargetEstimator"]
+__all__ = ["REFINE_MAX_STEP", "REFINE_SCALE", "REFINE_STEP_SIZE", "GradientTargetEstimator"]
 
 #: Length scale (metres) of the refinement model's inputs and output: offsets, contexts and distances are divided by it.
 REFINE_SCALE = 0.1
 #: Step size of a refinement step, in units of :data:`REFINE_SCALE`.
 REFINE_STEP_SIZE = 0.01
-
 #: Longest refinement step, in units of :data:`REFINE_SCALE` (5 cm): a longer one is shortened to it.
 REFINE_MAX_STEP = 0.5
 
@@ -73,12 +72,8 @@ class GradientTargetEstimator(FirstReadingsEstimator):
         self.steps = int(steps)
         #: Whether :meth:`fit` meta-learned the start, the step sizes and the reading model (False: the baseline).
         self.meta = True
-        sizes = [3 * (self.n_readings - 1) + 3, *self.hidden]
-        with seeded_torch_stream(seed):
-            layers: list[nn.Module] = []
-            for size_in, size_out in zip(sizes[:-1], sizes[1:]):
-                layers += [nn.Linear(size_in, size_out), nn.Tanh()]  # smooth: its gradient in z is what adapts
-            self.net = nn.Sequential(*layers, nn.Linear(sizes[-1], self.n_readings))
+        # tanh: smooth, its gradient in z is what adapts
+        self.net = seeded_mlp(3 * (self.n_readings - 1) + 3, self.hidden, self.n_readings, nn.Tanh, seed)
         self.start = nn.Parameter(torch.zeros(3))
         self.log_step = nn.Parameter(torch.full((3,), math.log(0.1)))
         n_offsets = 3 * (self.n_readings - 1)
@@ -184,12 +179,7 @@ class GradientTargetEstimator(FirstReadingsEstimator):
     @staticmethod
     def _reading_net(hidden: Sequence[int], seed: int) -> nn.Module:
         """The refinement model: ``(offset, context)`` (6 numbers) to one distance, smooth in the context."""
-        sizes = [6, *hidden]
-        with seeded_torch_stream(seed):
-            layers: list[nn.Module] = []
-            for size_in, size_out in zip(sizes[:-1], sizes[1:]):
-                layers += [nn.Linear(size_in, size_out), nn.SiLU()]
-            return nn.Sequential(*layers, nn.Linear(sizes[-1], 1))
+        return seeded_mlp(6, hidden, 1, nn.SiLU, seed)
 
     def fit_refinement(
         self, points: np.ndarray, distances: np.ndarray, targets: np.ndarray, hidden: Sequence[int] = (128, 128, 128),

@@ -67,6 +67,16 @@ REFINE_STEPS = 5
 MIN_SEPARATION = 1e-3
 
 
+def seeded_mlp(n_in: int, hidden: Sequence[int], n_out: int, activation: type[nn.Module], seed: int) -> nn.Sequential:
+    """``Linear`` layers with ``activation`` between them, initialised from ``seed`` (the caller's stream untouched)."""
+    sizes = [n_in, *hidden]
+    with seeded_torch_stream(seed):
+        layers: list[nn.Module] = []
+        for size_in, size_out in zip(sizes[:-1], sizes[1:]):
+            layers += [nn.Linear(size_in, size_out), activation()]
+        return nn.Sequential(*layers, nn.Linear(sizes[-1], n_out))
+
+
 def fit_minibatches(
     parameters: list[torch.Tensor], batch_loss: Callable[[torch.Tensor], torch.Tensor], n: int, epochs: int,
     batch_size: int, lr: float, seed: int, description: str, progress: bool,
@@ -391,12 +401,7 @@ class LearnedTargetEstimator(FirstReadingsEstimator):
     def __init__(self, n_readings: int = ESTIMATOR_READINGS, hidden: Sequence[int] = (256, 256), seed: int = 0) -> None:
         super().__init__(n_readings, hidden)
         n_in = 4 * self.n_readings - 3
-        sizes = [n_in, *self.hidden]
-        with seeded_torch_stream(seed):  # building an estimator leaves the caller's torch stream alone
-            layers: list[nn.Module] = []
-            for size_in, size_out in zip(sizes[:-1], sizes[1:]):
-                layers += [nn.Linear(size_in, size_out), nn.ReLU()]
-            self.net = nn.Sequential(*layers, nn.Linear(sizes[-1], 3))
+        self.net = seeded_mlp(n_in, self.hidden, 3, nn.ReLU, seed)
         self.stats = {"x_mean": np.zeros(n_in), "x_std": np.ones(n_in), "y_mean": np.zeros(3), "y_std": np.ones(3)}
 
     @staticmethod
