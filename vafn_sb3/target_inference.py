@@ -12,8 +12,8 @@ replaces trilateration by a :class:`LearnedTargetEstimator`: a network that maps
 the target, trained by regression on targets the training env knows (the privileged-information adaptation module of
 RMA), never told that the reading is ``|p - t|``. ``inference="gradient"`` (:class:`GradientInferencePolicy`) makes the
 probe moves, then infers the target by ``K`` meta-learned gradient steps on a 3-number context
-(:class:`~vafn_sb3.gradient_estimator.GradientTargetEstimator`); its ``adapt(k=K)`` sets ``K``, so it has an
-adaptation curve like the gradient-adapting learners.
+(:class:`~vafn_sb3.gradient_estimator.GradientTargetEstimator`), refined by more steps at every later reading; its
+``adapt(k=K)`` sets ``K``, so it has an adaptation curve like the gradient-adapting learners.
 """
 
 from __future__ import annotations
@@ -201,7 +201,7 @@ class TargetInferencePolicy:
         self._distances.append(distance)
         if self.inference == "none":
             estimate = None
-        elif self.inference in ESTIMATOR_MODES:  # one estimate from the waypoint's first readings, not refined
+        elif self.inference in ESTIMATOR_MODES:  # one estimate (GradientInferencePolicy refines it)
             estimate = self.estimator(self._points, self._distances) if self._estimate is None else None
         else:
             estimate = trilaterate(self._points, self._distances)

@@ -25,12 +25,12 @@ GOAL_ENV = "VAFN/ThreeArmReachGoal-v1"
 class StudyMethod:
     """One method of a panel: a label, its zoo algorithm, what it trains on and how the panel evaluates it.
 
-    ``evaluation`` is ``"adapt"`` (K adaptation steps on the panel's support sets, every K of the mode),
-    ``"zero-shot"`` (K = 0: a method that adapts inside the episode, or a panel that only measures generalisation),
-    ``"infer-probe"`` or ``"infer-learned"`` (a model trained on observed targets run through ``TargetInferencePolicy``
-    with trilateration, or with the packaged target estimator), ``"infer-gradient"`` (the same with K gradient steps of
-    the packaged meta-learned ``GradientTargetEstimator``, every K of the mode). A method with ``models_from`` trains
-    nothing: it evaluates the models of that method of the panel another way.
+    ``evaluation`` is ``"adapt"`` (K adaptation steps on the panel's support sets, every K of the mode), ``"zero-shot"``
+    (K = 0: a method that adapts inside the episode, or a panel that only measures generalisation), ``"infer-probe"`` or
+    ``"infer-learned"`` (a model trained on observed targets run through ``TargetInferencePolicy`` with trilateration,
+    or with the packaged target estimator), ``"infer-gradient"`` (the same with K gradient steps of the packaged
+    meta-learned ``GradientTargetEstimator``, refined at every later reading, every K of the mode). A method with
+    ``models_from`` trains nothing: it evaluates the models of that method of the panel another way.
     """
 
     label: str
