@@ -74,8 +74,7 @@ from vafn_sb3.common.adaptation_curves import (  # noqa: E402
 from vafn_sb3.target_inference import (  # noqa: E402
     INFERENCE_MODES,
     REFINE_STEPS,
-    GradientInferencePolicy,
-    TargetInferencePolicy,
+    inference_policy_for_env,
     load_estimator,
 )
 from vafn_sb3.loading import load_model, load_model_or_exit  # noqa: E402
@@ -170,10 +169,9 @@ def evaluate_model(method: Method, path: Path, args: argparse.Namespace, tasks: 
     if method.target_inference is not None:
         estimator = estimator_of(method, args)
         env = gym.make(args.env, **env_kwargs)
-        if method.target_inference == "gradient":
-            model = GradientInferencePolicy.for_env(model, env, estimator=estimator, refine_steps=args.refine_steps)
-        else:
-            model = TargetInferencePolicy.for_env(model, env, inference=method.target_inference, estimator=estimator)
+        # K = 0 is the unadapted policy; evaluate_adaptation's adapt(k=K) sets the gradient steps
+        model = inference_policy_for_env(model, env, method.target_inference, estimator, steps=0,
+                                         refine_steps=args.refine_steps)
         env.close()
     rows = evaluate_adaptation(model, args.env, tasks, n_support=args.n_support,
                                k_values=[0] if method.zero_shot else args.k, n_eval_episodes=args.n_eval_episodes,

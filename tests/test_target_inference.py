@@ -20,6 +20,7 @@ from vafn_sb3.target_inference import (
     LearnedTargetEstimator,
     TargetInferencePolicy,
     collect_waypoint_readings,
+    inference_policy_for_env,
     load_estimator,
 )
 
@@ -302,6 +303,12 @@ def test_gradient_inference_adapts_over_k_with_the_packaged_estimator(goal_oracl
     with pytest.raises(ValueError, match="needs a GradientTargetEstimator"):
         GradientInferencePolicy.for_env(goal_oracle, env, estimator=LearnedTargetEstimator())
     assert isinstance(load_estimator("gradient"), GradientTargetEstimator)  # the one mode -> estimator mapping
+    # the one mode -> policy mapping: gradient takes its estimator's own steps unless told, and refines
+    online = inference_policy_for_env(goal_oracle, env, "gradient")
+    assert isinstance(online, GradientInferencePolicy) and online.refines
+    assert online.estimator.steps == metadata["steps"]
+    assert inference_policy_for_env(goal_oracle, env, "gradient", steps=0, refine_steps=0).estimator.steps == 0
+    assert type(inference_policy_for_env(goal_oracle, env, "probe")) is TargetInferencePolicy
     assert isinstance(load_estimator("learned"), LearnedTargetEstimator)
     with pytest.raises(ValueError, match="reads an estimator"):
         load_estimator("probe")

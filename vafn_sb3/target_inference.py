@@ -49,7 +49,8 @@ from vafn_gym.layout import ArmLayout
 from vafn_sb3.common.adaptation import seeded_torch_stream
 
 __all__ = ["ESTIMATOR_READINGS", "INFERENCE_MODES", "REFINE_STEPS", "GradientInferencePolicy",
-           "LearnedTargetEstimator", "TargetInferencePolicy", "collect_waypoint_readings", "load_estimator"]
+           "LearnedTargetEstimator", "TargetInferencePolicy", "collect_waypoint_readings", "inference_policy_for_env",
+           "load_estimator"]
 
 #: ``inference`` settings: probe moves then trilateration, trilateration of passive readings only, probe moves then
 #: a :class:`LearnedTargetEstimator`, probe moves then gradient steps of a ``GradientTargetEstimator``, no inference.
@@ -458,6 +459,22 @@ def load_estimator(inference: str, path: str | Path | None = None) -> FirstReadi
 
         return GradientTargetEstimator.load(path)
     raise ValueError(f"only inference in {ESTIMATOR_MODES} reads an estimator, not inference={inference!r}")
+
+
+def inference_policy_for_env(
+    model: Any, env: gym.Env, inference: str, estimator: Any = None, steps: int | None = None,
+    refine_steps: int = REFINE_STEPS,
+) -> TargetInferencePolicy:
+    """The policy of an ``inference`` setting for ``env``: a :class:`GradientInferencePolicy` for ``"gradient"``.
+
+    ``steps`` and ``refine_steps`` concern ``"gradient"`` only; ``steps=None`` takes its estimator's own step count.
+    """
+    if inference != "gradient":
+        return TargetInferencePolicy.for_env(model, env, inference=inference, estimator=estimator)
+    if estimator is None:
+        estimator = load_estimator("gradient")
+    return GradientInferencePolicy.for_env(model, env, estimator=estimator,
+                                           steps=estimator.steps if steps is None else steps, refine_steps=refine_steps)
 
 
 class _TrilaterationAfter:

@@ -42,8 +42,7 @@ from vafn_sb3.target_inference import (  # noqa: E402
     ESTIMATOR_MODES,
     INFERENCE_MODES,
     REFINE_STEPS,
-    GradientInferencePolicy,
-    TargetInferencePolicy,
+    inference_policy_for_env,
     load_estimator,
 )
 from zoo.plot import plot_online_distances  # noqa: E402
@@ -138,14 +137,11 @@ def main(argv: list[str] | None = None) -> None:
         if args.policy is not None:
             parser.exit(2, "online_control.py: error: --infer-targets needs --model or --pretrained\n")
         try:
-            if args.infer_targets == "gradient":  # the estimator's own step count, refined at every later reading
-                estimator = load_estimator("gradient", args.target_estimator)
-                model = GradientInferencePolicy.for_env(model, env, estimator=estimator, steps=estimator.steps,
-                                                        refine_steps=args.refine_steps)
-            else:
-                estimator = None if args.target_estimator is None else load_estimator(args.infer_targets,
-                                                                                       args.target_estimator)
-                model = TargetInferencePolicy.for_env(model, env, inference=args.infer_targets, estimator=estimator)
+            estimator = None if args.target_estimator is None else load_estimator(args.infer_targets,
+                                                                                   args.target_estimator)
+            # gradient: the estimator's own step count, refined at every later reading
+            model = inference_policy_for_env(model, env, args.infer_targets, estimator,
+                                             refine_steps=args.refine_steps)
         except ValueError as error:
             parser.exit(2, f"online_control.py: error: {error}\n")
     if args.policy is None:
