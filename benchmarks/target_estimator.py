@@ -86,10 +86,11 @@ def load_readings(path: Path, flag: str) -> tuple[dict, dict]:
     return split["train"], split["test"]
 
 
-def refined(estimator: GradientTargetEstimator, readings: dict[str, np.ndarray], refine_steps: int) -> np.ndarray:
-    """Estimates after every reading of each row, refined as ``GradientInferencePolicy`` does it reading by reading."""
+def refined(estimator: GradientTargetEstimator, readings: dict[str, np.ndarray], first: np.ndarray,
+            refine_steps: int) -> np.ndarray:
+    """The ``first`` estimates refined at every later reading of each row, as ``GradientInferencePolicy`` does."""
     n = estimator.n_readings
-    estimates = estimator.predict(readings["points"], readings["distances"])
+    estimates = first.copy()
     for row, (points, distances) in enumerate(zip(readings["points"], readings["distances"])):
         for count in range(n + 1, len(points) + 1):
             estimates[row] = estimator.refine(points[:count], distances[:count], estimates[row], refine_steps)
@@ -221,10 +222,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 str(k): error_stats(estimator.predict(test["points"], test["distances"], steps=k), test["targets"])
                 for k in args.report_k}
         if refine_test:  # the first estimate from the first readings, then refined at every later one
+            first = estimator.predict(refine_test["points"], refine_test["distances"])
             report["learned"][str(seed)]["test_refined"] = {
-                "first": error_stats(estimator.predict(refine_test["points"], refine_test["distances"]),
-                                     refine_test["targets"]),
-                "refined": error_stats(refined(estimator, refine_test, REFINE_STEPS), refine_test["targets"])}
+                "first": error_stats(first, refine_test["targets"]),
+                "refined": error_stats(refined(estimator, refine_test, first, REFINE_STEPS), refine_test["targets"])}
     (args.out / f"{prefix}.json").write_text(json.dumps(report, indent=2))
 
     if gradient:
