@@ -14,8 +14,8 @@ the others.
 from __future__ import annotations
 
 import functools
-import json
 import importlib.util
+import json
 import os
 import re
 import shutil

@@ -115,7 +115,6 @@ def load_model(path: str | Path, algo: str | None = None) -> tuple[Any, str]:
                      "explicitly if it is one of these")
 
 
-
 def load_model_or_exit(path: str | Path, algo: str | None = None, context: str = "") -> tuple[Any, str]:
     """:func:`load_model` for command-line tools: a file that does not load stops the program in one line.
 
@@ -125,6 +124,7 @@ def load_model_or_exit(path: str | Path, algo: str | None = None, context: str =
         return load_model(path, algo)
     except (ValueError, FileNotFoundError) as error:
         raise SystemExit(f"{context}{error}") from None
+
 
 def training_env(path: str | Path) -> tuple[str | None, dict[str, Any]]:
     """``(env id, env kwargs)`` the model at ``path`` was trained on, from the files saved beside it (or ``None``).
