@@ -17,6 +17,7 @@ import json
 import os
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -26,12 +27,13 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from rl_zoo3.utils import get_wrapper_class  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import vafn_gym  # noqa: E402,F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark, confidence_half_width, episode_rates  # noqa: E402
 from vafn_gym.files import write_csv_rows  # noqa: E402
-from zoo.hyperparams import load_hyperparams, load_training_env_kwargs  # noqa: E402
+from zoo.hyperparams import load_entry, load_hyperparams, load_training_env_kwargs  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 
 SUCCESS_TARGET = 0.95
@@ -43,11 +45,20 @@ def training_env_kwargs(args: argparse.Namespace) -> dict:
             **args.env_kwargs}
 
 
+def training_env_wrapper(args: argparse.Namespace) -> Callable[[gym.Env], gym.Env] | None:
+    """The training env's wrapper: ``--hyperparams``' ``env_wrapper``, else the YAML's (rl_zoo3's format)."""
+    wrapper = args.hyperparams.get("env_wrapper", load_entry(args.algo, args.env).get("env_wrapper"))
+    return get_wrapper_class({"env_wrapper": wrapper})
+
+
 def train_one(args: argparse.Namespace, seed: int, benchmark: InstructionBenchmark) -> tuple[list[dict], object]:
     """Train one seed; returns its evaluation rows (the last one on every test task) and the model."""
     kwargs, yaml_steps, policy = load_hyperparams(args.algo, args.env)
-    kwargs.update({key: value for key, value in args.hyperparams.items() if key != "env_kwargs"})
+    kwargs.update({key: value for key, value in args.hyperparams.items() if key not in ("env_kwargs", "env_wrapper")})
     env = gym.make(args.env, max_length=args.train_max_length, **training_env_kwargs(args))
+    wrapper = training_env_wrapper(args)
+    if wrapper is not None:
+        env = wrapper(env)
     model = require_algorithm(args.algo)(policy, env, seed=seed, verbose=0, **kwargs)
     steps = args.steps or yaml_steps
     rows, wall0, cpu0 = [], time.perf_counter(), time.process_time()

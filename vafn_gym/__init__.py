@@ -21,6 +21,7 @@ from vafn_gym.queue import (
 from vafn_gym.robots import KUKA_IIWA, PANDA, ROBOTS, XARM6, RobotSpec
 from vafn_gym.task import INACTIVE_ARM_MODES, TARGET_MODES, WAITING_GOALS, InstructionTask, RewardConfig
 from vafn_gym.tasks import SPLITS, TaskSampler
+from vafn_gym.wrappers import GoalDetours
 
 #: ID -> (entry point, default kwargs). docs/environments.md documents each one.
 _REGISTRY = {
@@ -51,6 +52,7 @@ __all__ = [
     "XARM6",
     "ArmLayout",
     "ArrivalProcess",
+    "GoalDetours",
     "Instruction",
     "InstructionBenchmark",
     "InstructionQueue",
