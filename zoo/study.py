@@ -85,7 +85,9 @@ HIDDEN_PANEL = Panel(
         StudyMethod("maac", "maac", HIDDEN_ENV, hyperparams={"train_freq": 4}),
         StudyMethod("sac_history4", "sac", HIDDEN_ENV, "zero-shot", env_kwargs={"history": 4}),
         StudyMethod("ppo_lstm", "ppo_lstm", HIDDEN_ENV, "zero-shot"),
-        StudyMethod("goal_mappo_infer_probe", "mappo", GOAL_ENV, "infer-probe"),
+        # Trained with decoy goals at some waypoints' start, so a wrong early estimate does not strand the arm.
+        StudyMethod("goal_mappo_infer_probe", "mappo", GOAL_ENV, "infer-probe",
+                    hyperparams={"env_wrapper": "vafn_gym.wrappers.GoalDetours"}),
         StudyMethod("goal_mappo_infer_learned", "mappo", GOAL_ENV, "infer-learned",
                     models_from="goal_mappo_infer_probe"),
         StudyMethod("goal_mappo_infer_gradient", "mappo", GOAL_ENV, "infer-gradient",
