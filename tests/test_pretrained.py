@@ -55,15 +55,17 @@ def test_unknown_pair_lists_what_is_available():
         load_pretrained("ppo")
 
 
-def test_packaged_goal_observing_mappo_completes_hidden_target_instructions_through_target_inference():
+@pytest.mark.parametrize("inference", ["probe", "gradient"])
+def test_packaged_goal_observing_mappo_completes_hidden_target_instructions_through_target_inference(inference):
+    """Trilateration, and 10 gradient steps of the packaged estimator (refined at every later reading)."""
     import gymnasium as gym
 
     from vafn_gym import run_episode
-    from vafn_sb3 import TargetInferencePolicy
+    from vafn_sb3.target_inference import inference_policy_for_env
 
     hidden = "VAFN/ThreeArmReachHidden-v1"
     env = gym.make(hidden)
-    policy = TargetInferencePolicy.for_env(load_pretrained("mappo", "VAFN/ThreeArmReachGoal-v1"), env)
+    policy = inference_policy_for_env(load_pretrained("mappo", "VAFN/ThreeArmReachGoal-v1"), env, inference, steps=10)
     episodes = []
     for index, task in enumerate(InstructionBenchmark(hidden, 1, 4, n_test=N_TASKS).test_tasks):
         env.unwrapped.set_task(task)
