@@ -109,7 +109,8 @@ def main() -> None:
     parser.add_argument("--env", default="VAFN/ThreeArmReach-v1", help="env ID")
     parser.add_argument("--env-kwargs", type=json.loads, default={}, help='JSON, e.g. \'{"inactive_arms": "policy"}\'')
     parser.add_argument("--hyperparams", type=json.loads, default={},
-                        help="JSON overrides of the YAML values (its env_kwargs configure the training env only)")
+                        help="JSON overrides of the YAML values (its env_kwargs and env_wrapper configure the "
+                        "training env only)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="training seeds")
     parser.add_argument("--steps", type=int, default=None, help="env steps per seed (default: the YAML's n_timesteps)")
     parser.add_argument("--train-max-length", type=int, default=3, help="longest training instruction")
