@@ -16,8 +16,9 @@ episode; ``infer-passive``: without the probe moves; ``infer-learned``: probe mo
 ``--target-estimator`` (default: the packaged one) instead of trilateration; ``infer-none``: the centre of the shared
 region as every goal), also at K = 0 only. ``infer-gradient`` makes the probe moves, then infers each target by K
 gradient steps of the ``--gradient-estimator`` (default: the packaged meta-learned one) on the waypoint's first
-readings (:class:`vafn_sb3.GradientInferencePolicy`), refined by ``--refine-steps`` more at every later reading: it
-runs at every K and collects no support set, its adaptation data are the waypoint's readings inside the episode.
+readings (:class:`vafn_sb3.GradientInferencePolicy`), refined by ``--refine-steps`` steps of ``--refine-solver`` at
+every later reading: it runs at every K and collects no support set, its adaptation data are the waypoint's readings
+inside the episode.
 The scripted controller (the ceiling) and a uniform random policy (the floor) run on the same tasks.
 
 Writes to ``--out``: ``adaptation.csv`` (one row per method, seed, task and K), ``adaptation_summary.csv`` (per method
@@ -73,6 +74,8 @@ from vafn_sb3.common.adaptation_curves import (  # noqa: E402
 )
 from vafn_sb3.target_inference import (  # noqa: E402
     INFERENCE_MODES,
+    REFINE_SOLVER,
+    REFINE_SOLVERS,
     REFINE_STEPS,
     inference_policy_for_env,
     load_estimator,
@@ -171,7 +174,7 @@ def evaluate_model(method: Method, path: Path, args: argparse.Namespace, tasks: 
         env = gym.make(args.env, **env_kwargs)
         # K = 0 is the unadapted policy; evaluate_adaptation's adapt(k=K) sets the gradient steps
         model = inference_policy_for_env(model, env, method.target_inference, estimator, steps=0,
-                                         refine_steps=args.refine_steps)
+                                         refine_steps=args.refine_steps, refine_solver=args.refine_solver)
         env.close()
     rows = evaluate_adaptation(model, args.env, tasks, n_support=args.n_support,
                                k_values=[0] if method.zero_shot else args.k, n_eval_episodes=args.n_eval_episodes,
@@ -305,6 +308,7 @@ def estimator_record(method: Method, args: argparse.Namespace) -> dict[str, str]
     record = {flag: str(getattr(args, flag) or "packaged")}
     if method.target_inference == "gradient":
         record["refine_steps"] = args.refine_steps
+        record["refine_solver"] = args.refine_solver
     return record
 
 
@@ -323,9 +327,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--gradient-estimator", type=Path, default=None,
                         help="GradientTargetEstimator file of infer-gradient methods (benchmarks/target_estimator.py "
                              "--estimator gradient; None: the packaged estimator)")
-    parser.add_argument("--refine-steps", type=int, default=REFINE_STEPS,
-                        help="infer-gradient: gradient steps per later reading that refine the estimate (0: estimate "
-                             "once from the first readings)")
+    parser.add_argument("--refine-steps", type=int, default=None,
+                        help="infer-gradient: steps per later reading that refine the estimate (0: estimate once from "
+                             "the first readings; None: 1 Gauss-Newton or 5 gradient steps)")
+    parser.add_argument("--refine-solver", choices=list(REFINE_SOLVERS), default=REFINE_SOLVER,
+                        help="infer-gradient: how the refinement steps: Gauss-Newton or plain gradient steps")
     parser.add_argument("--min-length", type=int, default=1, help="shortest test instruction")
     parser.add_argument("--max-length", type=int, default=4, help="longest test instruction")
     parser.add_argument("--n-tasks", type=int, default=30, help="held-out test instructions")
@@ -360,6 +366,8 @@ def main(argv: list[str] | None = None) -> None:
         print(replot(args.out, args.title))
         return
     torch.set_num_threads(1)
+    if args.refine_steps is None:
+        args.refine_steps = REFINE_STEPS[args.refine_solver]
     if args.refine_steps < 0:
         raise SystemExit(f"--refine-steps must be >= 0, got {args.refine_steps}")
     methods = [Method.parse(fields) for fields in args.method]

@@ -45,7 +45,7 @@ from vafn_sb3 import (  # noqa: E402
     load_pretrained,
 )
 from vafn_sb3.loading import load_model  # noqa: E402
-from vafn_sb3.target_inference import ESTIMATOR_READINGS, REFINE_STEPS  # noqa: E402
+from vafn_sb3.target_inference import ESTIMATOR_READINGS, REFINE_SOLVERS, REFINE_STEPS  # noqa: E402
 from zoo.registry import register_algorithms  # noqa: E402
 
 #: Reset seeds of the collection episodes (train and test episodes never share one).
@@ -87,13 +87,14 @@ def load_readings(path: Path, flag: str) -> tuple[dict, dict]:
 
 
 def refined(estimator: GradientTargetEstimator, readings: dict[str, np.ndarray], first: np.ndarray,
-            refine_steps: int) -> np.ndarray:
+            solver: str) -> np.ndarray:
     """The ``first`` estimates refined at every later reading of each row, as ``GradientInferencePolicy`` does."""
     n = estimator.n_readings
     estimates = first.copy()
     for row, (points, distances) in enumerate(zip(readings["points"], readings["distances"])):
         for count in range(n + 1, len(points) + 1):
-            estimates[row] = estimator.refine(points[:count], distances[:count], estimates[row], refine_steps)
+            estimates[row] = estimator.refine(points[:count], distances[:count], estimates[row],
+                                              REFINE_STEPS[solver], solver)
     return estimates
 
 
@@ -225,7 +226,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             first = estimator.predict(refine_test["points"], refine_test["distances"])
             report["learned"][str(seed)]["test_refined"] = {
                 "first": error_stats(first, refine_test["targets"]),
-                "refined": error_stats(refined(estimator, refine_test, first, REFINE_STEPS), refine_test["targets"])}
+                **{f"refined_{solver}": error_stats(refined(estimator, refine_test, first, solver),
+                                                    refine_test["targets"]) for solver in REFINE_SOLVERS}}
     (args.out / f"{prefix}.json").write_text(json.dumps(report, indent=2))
 
     if gradient:
@@ -242,7 +244,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         print(f"refinement: {report['refinement']['test_readings']} held-out waypoints with "
               f"{report['refinement']['readings_per_waypoint']} readings each; error (median cm, share within the "
               f"success tolerance) from the first readings, and after refining at every later reading\n")
-        print("| seed | first estimate | refined |\n|---|---|---|")
+        print("| seed | first estimate | " + " | ".join(f"refined, {solver}" for solver in REFINE_SOLVERS) + " |")
+        print("|---|---|" + "---|" * len(REFINE_SOLVERS))
         for seed, entry in report["learned"].items():
             cells = [f"{stats['median_cm']:.2f}, {stats['within_tolerance']:.3f}"
                      for stats in entry["test_refined"].values()]

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from vafn_sb3 import MTSAC, SAC, GradientTargetEstimator, LearnedTargetEstimator
-from vafn_sb3.target_inference import REFINE_STEPS
+from vafn_sb3.target_inference import REFINE_SOLVER, REFINE_STEPS
 
 ROOT = Path(__file__).resolve().parents[1]
 HIDDEN = "VAFN/ThreeArmReachHidden-v1"
@@ -119,7 +119,9 @@ def test_study_end_to_end(study, tmp_path, monkeypatch, workers):
     assert [m.get("target_estimator") for m in meta["methods"]] == [None, None, None, str(models / "estimator.pt"),
                                                                      None]
     assert meta["methods"][-1]["gradient_estimator"] == str(models / "gradient.pt")
-    assert meta["methods"][-1]["refine_steps"] == REFINE_STEPS  # recorded: it changes what infer-gradient does
+    # recorded: they change what infer-gradient does
+    assert meta["methods"][-1]["refine_steps"] == REFINE_STEPS[REFINE_SOLVER]
+    assert meta["methods"][-1]["refine_solver"] == REFINE_SOLVER
     assert all(r["support_arms"] == "nan" for r in rows if r["method"] == "gradient")  # adapts on no support set
 
 

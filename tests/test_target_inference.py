@@ -15,6 +15,7 @@ from vafn_gym.controllers import PROBE_DIRECTIONS
 from vafn_sb3.common.adaptation import evaluate_adaptation
 from vafn_sb3.gradient_estimator import BASELINE_STEP_SIZES, GradientTargetEstimator
 from vafn_sb3.target_inference import (
+    REFINE_SOLVER,
     REFINE_STEPS,
     GradientInferencePolicy,
     LearnedTargetEstimator,
@@ -215,7 +216,7 @@ def test_target_estimator_benchmark_writes_estimators_and_errors(load_benchmark,
                             "--refine-readings", str(tmp_path / "readings.npz")])
     assert gradient["collect_cpu_s"] is None and gradient["train_readings"] == report["train_readings"]
     assert set(gradient["learned"]["0"]["test_by_k"]) == {"0", "2"}
-    assert set(gradient["learned"]["0"]["test_refined"]) == {"first", "refined"}
+    assert set(gradient["learned"]["0"]["test_refined"]) == {"first", "refined_gauss-newton", "refined_gradient"}
     assert gradient["refinement"]["readings_per_waypoint"] == 8
     loaded = GradientTargetEstimator.load(tmp_path / "g" / "gradient_estimator_seed0.pt")
     assert loaded.steps == 2 and loaded.reading_net is not None
@@ -290,7 +291,12 @@ def test_gradient_inference_adapts_over_k_with_the_packaged_estimator(goal_oracl
     adapted = policy.adapt(env, k=10)
     assert adapted.estimator.steps == 10 and policy.estimator.steps == 0 and adapted.support is None
     # the packaged estimator refines at every later reading once adapted; K = 0 adapts nothing, refinement included
-    assert adapted.refines and not policy.refines and adapted.refine_steps == REFINE_STEPS
+    assert adapted.refines and not policy.refines and adapted.refine_solver == REFINE_SOLVER
+    assert adapted.refine_steps == REFINE_STEPS[REFINE_SOLVER]
+    plain = GradientInferencePolicy.for_env(goal_oracle, env, refine_solver="gradient")
+    assert plain.refine_steps == REFINE_STEPS["gradient"] and plain.adapt(env, k=10).refine_solver == "gradient"
+    with pytest.raises(ValueError, match="refine_solver must be one of"):
+        GradientInferencePolicy.for_env(goal_oracle, env, refine_solver="newton")
     assert not GradientInferencePolicy.for_env(goal_oracle, env, steps=10, refine_steps=0).refines
     with pytest.raises(ValueError, match="refine_steps must be >= 0"):
         GradientInferencePolicy.for_env(goal_oracle, env, refine_steps=-1)
@@ -340,10 +346,18 @@ def test_gradient_estimator_refines_an_estimate_on_later_readings(tmp_path):
     assert losses[-1] < 0.1 * losses[0]
     rng = np.random.default_rng(1)
     starts = targets[1500:] + rng.normal(0.0, 0.05, (100, 3))  # first estimates about 8 cm off
-    refined = np.array([estimator.refine(p, d, start, steps=200)
-                        for p, d, start in zip(points[1500:], distances[1500:], starts)])
-    before, after = (np.median(np.linalg.norm(e - targets[1500:], axis=1)) for e in (starts, refined))
-    assert after < 0.5 * before, (before, after)
+    before = np.median(np.linalg.norm(starts - targets[1500:], axis=1))
+    for solver, steps in (("gradient", 200), ("gauss-newton", 3)):  # Gauss-Newton: a few steps do it
+        refined = np.array([estimator.refine(p, d, start, steps=steps, solver=solver)
+                            for p, d, start in zip(points[1500:], distances[1500:], starts)])
+        after = np.median(np.linalg.norm(refined - targets[1500:], axis=1))
+        assert after < 0.5 * before, (solver, before, after)
+    with pytest.raises(ValueError, match="solver must be one of"):
+        estimator.refine(points[1500], distances[1500], starts[0], steps=1, solver="newton")
+    # readings that leave directions undetermined (all at one point): a finite, shortened minimum-norm step
+    still = estimator.refine(np.repeat(points[1500, :1], 5, axis=0), np.repeat(distances[1500, :1], 5), starts[0],
+                             steps=3)
+    assert np.isfinite(still).all() and np.linalg.norm(still - starts[0]) <= 3 * 0.05 + 1e-6
     assert np.allclose(estimator.refine(points[1500], distances[1500], starts[0], steps=0), starts[0])
     estimator.save(tmp_path / "with.pt")
     loaded = GradientTargetEstimator.load(tmp_path / "with.pt")
@@ -353,5 +367,6 @@ def test_gradient_estimator_refines_an_estimate_on_later_readings(tmp_path):
         estimator.fit_refinement(points[:, 0], distances, targets)
     # readings far from any it was fitted on (an arm that wandered off) move the estimate at most 5 cm a step
     far = points[1500] * 50.0
-    moved = estimator.refine(far, distances[1500] * 50.0, starts[0], steps=10)
-    assert np.isfinite(moved).all() and np.linalg.norm(moved - starts[0]) <= 10 * 0.05 + 1e-6
+    for solver in ("gradient", "gauss-newton"):
+        moved = estimator.refine(far, distances[1500] * 50.0, starts[0], steps=10, solver=solver)
+        assert np.isfinite(moved).all() and np.linalg.norm(moved - starts[0]) <= 10 * 0.05 + 1e-6

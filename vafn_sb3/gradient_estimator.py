@@ -18,7 +18,10 @@ precise where the training targets thin out, at the edges of the target region).
 keeps adapting the same three numbers as the arm moves: a second, per-reading model ``f(offset, z) -> distance``
 (:meth:`GradientTargetEstimator.fit_refinement`, fitted by regression on readings along whole approaches, so it reads
 any number of readings at any offsets) takes plain gradient steps on ``z`` over every reading so far, starting from the
-current estimate. Readings centimetres apart constrain the target far better than the first millimetre moves.
+current estimate. Readings centimetres apart constrain the target far better than the first millimetre moves. The
+steps are Gauss-Newton steps by default (the model's Jacobian in ``z`` from one backward pass, the step a least-squares
+solve): an arm's readings along its approach lie nearly on a line, so the error is flat across it and plain gradient
+steps (``solver="gradient"``) barely move the estimate in that direction.
 """
 
 from __future__ import annotations
@@ -35,6 +38,8 @@ from torch import nn
 
 from vafn_sb3.target_inference import (
     ESTIMATOR_READINGS,
+    REFINE_SOLVER,
+    REFINE_SOLVERS,
     FirstReadingsEstimator,
     LearnedTargetEstimator,
     fit_minibatches,
@@ -205,24 +210,40 @@ class GradientTargetEstimator(FirstReadingsEstimator):
                                len(x), epochs, batch_size, lr, seed, "fitting the refinement model", progress)
 
     def refine(self, points: Sequence[np.ndarray], distances: Sequence[float], estimate: np.ndarray,
-               steps: int) -> np.ndarray:
-        """``estimate`` after ``steps`` plain gradient steps on the refinement model's error over every reading."""
+               steps: int, solver: str = REFINE_SOLVER) -> np.ndarray:
+        """``estimate`` after ``steps`` steps of ``solver`` (one of ``REFINE_SOLVERS``) on the refinement model's error.
+
+        The error is the squared difference between the model's distance and each reading so far. ``"gauss-newton"``:
+        each step solves the linearised least-squares problem (minimum norm where the readings leave a direction
+        undetermined); ``"gradient"``: each step is ``REFINE_STEP_SIZE`` times the gradient. Either step is shortened
+        to ``REFINE_MAX_STEP``.
+        """
         if self.reading_net is None:
             raise ValueError("this estimator has no refinement model: call fit_refinement first")
+        if solver not in REFINE_SOLVERS:
+            raise ValueError(f"solver must be one of {REFINE_SOLVERS}, got {solver!r}")
         points = np.asarray(points, dtype=np.float64)
         offsets = torch.as_tensor((points - points[0]) / REFINE_SCALE, dtype=torch.float32)
         readings = torch.as_tensor(np.asarray(distances, dtype=np.float64) / REFINE_SCALE, dtype=torch.float32)
         z = torch.as_tensor((np.asarray(estimate) - points[0]) / REFINE_SCALE, dtype=torch.float32)
         with torch.enable_grad():
             for _ in range(steps):
-                z = z.detach().requires_grad_(True)
-                predicted = self.reading_net(torch.cat([offsets, z.expand(len(offsets), 3)], dim=1))[:, 0]
-                (gradient,) = torch.autograd.grad(((predicted - readings) ** 2).sum(), z)
-                step = REFINE_STEP_SIZE * gradient
+                if solver == "gradient":
+                    z = z.detach().requires_grad_(True)
+                    predicted = self.reading_net(torch.cat([offsets, z.expand(len(offsets), 3)], dim=1))[:, 0]
+                    (gradient,) = torch.autograd.grad(((predicted - readings) ** 2).sum(), z)
+                    step = REFINE_STEP_SIZE * gradient
+                else:
+                    # one copy of z per reading: the gradient of the summed predictions is then the Jacobian, row by row
+                    rows = z.detach().expand(len(offsets), 3).clone().requires_grad_(True)
+                    predicted = self.reading_net(torch.cat([offsets, rows], dim=1))[:, 0]
+                    (jacobian,) = torch.autograd.grad(predicted.sum(), rows)
+                    residual = (predicted.detach() - readings)[:, None]
+                    step = torch.linalg.lstsq(jacobian, residual).solution[:, 0]
                 if not torch.isfinite(step).all():
                     break
-                # readings far from any the model was fitted on (an arm that wandered) can give huge gradients
-                z = z - step * min(1.0, REFINE_MAX_STEP / max(step.norm().item(), 1e-12))
+                # readings far from any the model was fitted on (an arm that wandered) can give huge steps
+                z = z.detach() - step * min(1.0, REFINE_MAX_STEP / max(step.norm().item(), 1e-12))
         return points[0] + z.detach().double().numpy() * REFINE_SCALE
 
     def _saved_extras(self) -> dict[str, Any]:

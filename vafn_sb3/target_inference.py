@@ -12,8 +12,8 @@ replaces trilateration by a :class:`LearnedTargetEstimator`: a network that maps
 the target, trained by regression on targets the training env knows (the privileged-information adaptation module of
 RMA), never told that the reading is ``|p - t|``. ``inference="gradient"`` (:class:`GradientInferencePolicy`) makes the
 probe moves, then infers the target by ``K`` meta-learned gradient steps on a 3-number context
-(:class:`~vafn_sb3.gradient_estimator.GradientTargetEstimator`), refined by more steps at every later reading; its
-``adapt(k=K)`` sets ``K``, so it has an adaptation curve like the gradient-adapting learners.
+(:class:`~vafn_sb3.gradient_estimator.GradientTargetEstimator`), refined by a Gauss-Newton step at every later
+reading; its ``adapt(k=K)`` sets ``K``, so it has an adaptation curve like the gradient-adapting learners.
 """
 
 from __future__ import annotations
@@ -48,9 +48,9 @@ from vafn_gym.controllers import PROBE_DIRECTIONS, trilaterate
 from vafn_gym.layout import ArmLayout
 from vafn_sb3.common.adaptation import seeded_torch_stream
 
-__all__ = ["ESTIMATOR_READINGS", "INFERENCE_MODES", "REFINE_STEPS", "GradientInferencePolicy",
-           "LearnedTargetEstimator", "TargetInferencePolicy", "collect_waypoint_readings", "inference_policy_for_env",
-           "load_estimator"]
+__all__ = ["ESTIMATOR_READINGS", "INFERENCE_MODES", "REFINE_SOLVER", "REFINE_SOLVERS", "REFINE_STEPS",
+           "GradientInferencePolicy", "LearnedTargetEstimator", "TargetInferencePolicy", "collect_waypoint_readings",
+           "inference_policy_for_env", "load_estimator"]
 
 #: ``inference`` settings: probe moves then trilateration, trilateration of passive readings only, probe moves then
 #: a :class:`LearnedTargetEstimator`, probe moves then gradient steps of a ``GradientTargetEstimator``, no inference.
@@ -61,8 +61,13 @@ ESTIMATOR_MODES = ("learned", "gradient")
 #: depend on the policy it serves (later ones do: an estimator trained on them is tied to one policy).
 ESTIMATOR_READINGS = 4
 
-#: Gradient steps per later reading with which ``GradientInferencePolicy`` refines its estimate by default.
-REFINE_STEPS = 5
+#: How ``GradientTargetEstimator.refine`` steps on its three numbers: Gauss-Newton steps (the default: the readings
+#: of an approach lie nearly on a line, so plain gradient steps barely move the estimate across it) or gradient steps.
+REFINE_SOLVERS = ("gauss-newton", "gradient")
+#: The refinement solver ``GradientInferencePolicy`` uses by default.
+REFINE_SOLVER = "gauss-newton"
+#: Refinement steps per later reading of each solver, by default.
+REFINE_STEPS = {"gauss-newton": 1, "gradient": 5}
 
 #: Readings of one waypoint closer than this (metres) to the previous one are not recorded.
 MIN_SEPARATION = 1e-3
@@ -261,13 +266,15 @@ class GradientInferencePolicy(TargetInferencePolicy):
     Its own estimator takes ``steps`` steps (0: the meta-learned start, i.e. this method unadapted). ``adapt`` collects
     no support set: the data each step adapts on are the waypoint's own readings (the probe moves, inside the
     episode), so ``n_support`` is ignored and the adapted policy has ``support = None``. When the estimator has a
-    refinement model (the packaged one has), every later reading of the waypoint adds ``refine_steps`` gradient steps
-    on all its readings so far (:meth:`~vafn_sb3.gradient_estimator.GradientTargetEstimator.refine`); with ``steps = 0``
-    nothing adapts, refinement included.
+    refinement model (the packaged one has), every later reading of the waypoint adds ``refine_steps`` steps of
+    ``refine_solver`` on all its readings so far (:meth:`~vafn_sb3.gradient_estimator.GradientTargetEstimator.refine`);
+    with ``steps = 0`` nothing adapts, refinement included.
 
     :param estimator: a :class:`~vafn_sb3.gradient_estimator.GradientTargetEstimator`; None: the packaged one.
     :param steps: gradient steps per waypoint of this policy's estimator.
-    :param refine_steps: gradient steps per later reading (0, or an estimator without a refinement model: none).
+    :param refine_steps: refinement steps per later reading (0, or an estimator without a refinement model: none;
+        None: :data:`REFINE_STEPS` of the solver).
+    :param refine_solver: one of :data:`REFINE_SOLVERS`.
     """
 
     #: No support set: the adapted policies adapt on the episode's own readings.
@@ -275,27 +282,31 @@ class GradientInferencePolicy(TargetInferencePolicy):
 
     def __init__(self, model: Any, homes: Mapping[int, np.ndarray], priors: Mapping[int, np.ndarray],
                  inference: str = "gradient", waiting_goal: str = "target", estimator: Any = None,
-                 steps: int = 0, refine_steps: int = REFINE_STEPS) -> None:
+                 steps: int = 0, refine_steps: int | None = None, refine_solver: str = REFINE_SOLVER) -> None:
         if inference != "gradient":
             raise ValueError(f"GradientInferencePolicy infers by gradient steps, not inference={inference!r}")
         if estimator is not None and not callable(getattr(estimator, "with_steps", None)):
             raise ValueError(f"GradientInferencePolicy needs a GradientTargetEstimator (with with_steps), got "
                              f"{type(estimator).__name__}")
+        if refine_solver not in REFINE_SOLVERS:
+            raise ValueError(f"refine_solver must be one of {REFINE_SOLVERS}, got {refine_solver!r}")
+        refine_steps = REFINE_STEPS[refine_solver] if refine_steps is None else refine_steps
         if refine_steps < 0:
             raise ValueError(f"refine_steps must be >= 0, got {refine_steps}")
         super().__init__(model, homes, priors, inference="gradient", waiting_goal=waiting_goal, estimator=estimator)
         self.estimator = self.estimator.with_steps(steps)
         self.refine_steps = int(refine_steps)
+        self.refine_solver = refine_solver
 
     @classmethod
     def for_env(
         cls, model: Any, env: gym.Env, inference: str = "gradient", estimator: Any = None, steps: int = 0,
-        refine_steps: int = REFINE_STEPS,
+        refine_steps: int | None = None, refine_solver: str = REFINE_SOLVER,
     ) -> GradientInferencePolicy:
         """A policy for ``env`` (a hidden-target :class:`MultiArmEnv`, any wrapper, ``history=1``)."""
         homes, priors, waiting_goal = cls.env_frame(env)
         return cls(model, homes, priors, inference=inference, waiting_goal=waiting_goal, estimator=estimator,
-                   steps=steps, refine_steps=refine_steps)
+                   steps=steps, refine_steps=refine_steps, refine_solver=refine_solver)
 
     @property
     def refines(self) -> bool:
@@ -309,7 +320,8 @@ class GradientInferencePolicy(TargetInferencePolicy):
         super()._record(active, position, distance)
         # a new reading of a waypoint already estimated (not a repeated point, not a new waypoint) refines it
         if self.refines and estimated and self._estimate is not None and len(self._points) > n_points:
-            self._estimate = self.estimator.refine(self._points, self._distances, self._estimate, self.refine_steps)
+            self._estimate = self.estimator.refine(self._points, self._distances, self._estimate, self.refine_steps,
+                                                   self.refine_solver)
 
     def adapt(self, env: gym.Env, task: Any = None, n_support: int = 0, k: int = 1,
               seed: int | None = None) -> GradientInferencePolicy:
@@ -463,18 +475,20 @@ def load_estimator(inference: str, path: str | Path | None = None) -> FirstReadi
 
 def inference_policy_for_env(
     model: Any, env: gym.Env, inference: str, estimator: Any = None, steps: int | None = None,
-    refine_steps: int = REFINE_STEPS,
+    refine_steps: int | None = None, refine_solver: str = REFINE_SOLVER,
 ) -> TargetInferencePolicy:
     """The policy of an ``inference`` setting for ``env``: a :class:`GradientInferencePolicy` for ``"gradient"``.
 
-    ``steps`` and ``refine_steps`` concern ``"gradient"`` only; ``steps=None`` takes its estimator's own step count.
+    ``steps``, ``refine_steps`` and ``refine_solver`` concern ``"gradient"`` only; ``steps=None`` takes its estimator's
+    own step count, ``refine_steps=None`` the solver's :data:`REFINE_STEPS`.
     """
     if inference != "gradient":
         return TargetInferencePolicy.for_env(model, env, inference=inference, estimator=estimator)
     if estimator is None:
         estimator = load_estimator("gradient")
     return GradientInferencePolicy.for_env(model, env, estimator=estimator,
-                                           steps=estimator.steps if steps is None else steps, refine_steps=refine_steps)
+                                           steps=estimator.steps if steps is None else steps, refine_steps=refine_steps,
+                                           refine_solver=refine_solver)
 
 
 class _TrilaterationAfter:

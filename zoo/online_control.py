@@ -41,7 +41,8 @@ from vafn_sb3.online import OnlineController  # noqa: E402
 from vafn_sb3.target_inference import (  # noqa: E402
     ESTIMATOR_MODES,
     INFERENCE_MODES,
-    REFINE_STEPS,
+    REFINE_SOLVER,
+    REFINE_SOLVERS,
     inference_policy_for_env,
     load_estimator,
 )
@@ -93,9 +94,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--target-estimator", type=Path, default=None,
                         help="estimator file for --infer-targets learned or gradient (benchmarks/target_estimator.py, "
                              "its --estimator regression or gradient; None: the packaged estimator)")
-    parser.add_argument("--refine-steps", type=int, default=REFINE_STEPS,
-                        help="--infer-targets gradient: gradient steps per later reading that refine the estimate "
-                             "(0: estimate once)")
+    parser.add_argument("--refine-steps", type=int, default=None,
+                        help="--infer-targets gradient: steps per later reading that refine the estimate (0: estimate "
+                             "once; None: 1 Gauss-Newton or 5 gradient steps)")
+    parser.add_argument("--refine-solver", choices=list(REFINE_SOLVERS), default=REFINE_SOLVER,
+                        help="--infer-targets gradient: how the refinement steps: Gauss-Newton or plain gradient steps")
     parser.add_argument("--n-support", type=int, default=25, help="support transitions per instruction (twin env)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the arrivals, support rollouts and env")
     parser.add_argument("--out", type=Path, default=Path("runs/online"),
@@ -141,7 +144,7 @@ def main(argv: list[str] | None = None) -> None:
                                                                                    args.target_estimator)
             # gradient: the estimator's own step count, refined at every later reading
             model = inference_policy_for_env(model, env, args.infer_targets, estimator,
-                                             refine_steps=args.refine_steps)
+                                             refine_steps=args.refine_steps, refine_solver=args.refine_solver)
         except ValueError as error:
             parser.exit(2, f"online_control.py: error: {error}\n")
     if args.policy is None:
