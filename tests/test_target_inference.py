@@ -15,6 +15,7 @@ from vafn_gym.controllers import PROBE_DIRECTIONS
 from vafn_sb3.common.adaptation import evaluate_adaptation
 from vafn_sb3.gradient_estimator import BASELINE_STEP_SIZES, GradientTargetEstimator
 from vafn_sb3.target_inference import (
+    ESTIMATOR_READINGS,
     REFINE_SOLVER,
     REFINE_STEPS,
     GradientInferencePolicy,
@@ -352,6 +353,13 @@ def test_gradient_estimator_refines_an_estimate_on_later_readings(tmp_path):
                             for p, d, start in zip(points[1500:], distances[1500:], starts)])
         after = np.median(np.linalg.norm(refined - targets[1500:], axis=1))
         assert after < 0.5 * before, (solver, before, after)
+    # a start far off (a wild first estimate) loses to a restart whose result explains the readings better
+    wild = targets[1500:1520] + 1.0
+    kept = [estimator.refine(p, d, w, steps=3, restarts=(start,))
+            for p, d, w, start in zip(points[1500:1520], distances[1500:1520], wild, starts[:20])]
+    alone = [estimator.refine(p, d, w, steps=3) for p, d, w in zip(points[1500:1520], distances[1500:1520], wild)]
+    assert np.median(np.linalg.norm(np.array(kept) - targets[1500:1520], axis=1)) < 0.5 * before
+    assert np.median(np.linalg.norm(np.array(alone) - targets[1500:1520], axis=1)) > 0.5
     with pytest.raises(ValueError, match="solver must be one of"):
         estimator.refine(points[1500], distances[1500], starts[0], steps=1, solver="newton")
     # readings that leave directions undetermined (all at one point): a finite, shortened minimum-norm step
@@ -370,3 +378,45 @@ def test_gradient_estimator_refines_an_estimate_on_later_readings(tmp_path):
     for solver in ("gradient", "gauss-newton"):
         moved = estimator.refine(far, distances[1500] * 50.0, starts[0], steps=10, solver=solver)
         assert np.isfinite(moved).all() and np.linalg.norm(moved - starts[0]) <= 10 * 0.05 + 1e-6
+
+
+class RecordingEstimator:
+    """A stand-in GradientTargetEstimator that records how the policy asks it to refine."""
+
+    reading_net = object()
+
+    def __init__(self, steps: int = 0) -> None:
+        self.steps, self.calls = steps, []
+
+    def with_steps(self, steps: int) -> RecordingEstimator:
+        adapted = RecordingEstimator(steps)
+        adapted.calls = self.calls
+        return adapted
+
+    def __call__(self, points, distances):
+        # somewhere 10 cm away, so that the arm moves on and makes new readings
+        return np.asarray(points[0]) + np.array([0.0, 0.0, -0.1]) if len(points) >= ESTIMATOR_READINGS else None
+
+    def refine(self, points, distances, estimate, steps, solver, restarts=()):
+        self.calls.append((steps, solver, [np.asarray(r).copy() for r in restarts]))
+        return estimate
+
+
+@pytest.mark.parametrize("solver", ["gauss-newton", "gradient"])
+def test_gradient_inference_refines_with_its_solver_and_restarts_from_the_prior(goal_oracle, solver):
+    env = gym.make(HIDDEN, max_length=1)
+    estimator = RecordingEstimator()
+    policy = GradientInferencePolicy.for_env(goal_oracle, env, estimator=estimator, refine_solver=solver)
+    policy = policy.adapt(env, k=3)
+    obs, _ = env.reset(seed=0)
+    policy.reset()
+    for _ in range(15):
+        obs, *_ = env.step(policy.predict(obs)[0])
+    assert estimator.calls, "later readings refine the estimate"
+    active = policy.readings[0] or 1
+    for steps, used, restarts in estimator.calls:
+        assert (steps, used) == (REFINE_STEPS[solver], solver)
+        # Gauss-Newton also starts from the prior, the plain gradient steps (the earlier results) do not
+        assert len(restarts) == (solver == "gauss-newton")
+        assert all(np.allclose(r, policy.priors[active]) for r in restarts)
+    env.close()

@@ -210,13 +210,15 @@ class GradientTargetEstimator(FirstReadingsEstimator):
                                len(x), epochs, batch_size, lr, seed, "fitting the refinement model", progress)
 
     def refine(self, points: Sequence[np.ndarray], distances: Sequence[float], estimate: np.ndarray,
-               steps: int, solver: str = REFINE_SOLVER) -> np.ndarray:
+               steps: int, solver: str = REFINE_SOLVER, restarts: Sequence[np.ndarray] = ()) -> np.ndarray:
         """``estimate`` after ``steps`` steps of ``solver`` (one of ``REFINE_SOLVERS``) on the refinement model's error.
 
         The error is the squared difference between the model's distance and each reading so far. ``"gauss-newton"``:
         each step solves the linearised least-squares problem (minimum norm where the readings leave a direction
         undetermined); ``"gradient"``: each step is ``REFINE_STEP_SIZE`` times the gradient. Either step is shortened
-        to ``REFINE_MAX_STEP``.
+        to ``REFINE_MAX_STEP``. ``restarts``: more points to take the same steps from; of all the results, the one
+        whose error is least is returned (a first estimate far off, from readings unlike any in training, is then
+        dropped once the readings place the target).
         """
         if self.reading_net is None:
             raise ValueError("this estimator has no refinement model: call fit_refinement first")
@@ -225,7 +227,15 @@ class GradientTargetEstimator(FirstReadingsEstimator):
         points = np.asarray(points, dtype=np.float64)
         offsets = torch.as_tensor((points - points[0]) / REFINE_SCALE, dtype=torch.float32)
         readings = torch.as_tensor(np.asarray(distances, dtype=np.float64) / REFINE_SCALE, dtype=torch.float32)
-        z = torch.as_tensor((np.asarray(estimate) - points[0]) / REFINE_SCALE, dtype=torch.float32)
+        ends = [self._refined(offsets, readings, torch.as_tensor((np.asarray(start) - points[0]) / REFINE_SCALE,
+                                                                 dtype=torch.float32), steps, solver)
+                for start in (estimate, *restarts)]
+        z = ends[0] if len(ends) == 1 else min(ends, key=lambda end: self._reading_error(offsets, readings, end))
+        return points[0] + z.double().numpy() * REFINE_SCALE
+
+    def _refined(self, offsets: torch.Tensor, readings: torch.Tensor, z: torch.Tensor, steps: int,
+                 solver: str) -> torch.Tensor:
+        """The context after :meth:`refine`'s ``steps`` from ``z`` (scaled units, relative to the first reading)."""
         with torch.enable_grad():
             for _ in range(steps):
                 if solver == "gradient":
@@ -244,7 +254,13 @@ class GradientTargetEstimator(FirstReadingsEstimator):
                     break
                 # readings far from any the model was fitted on (an arm that wandered) can give huge steps
                 z = z.detach() - step * min(1.0, REFINE_MAX_STEP / max(step.norm().item(), 1e-12))
-        return points[0] + z.detach().double().numpy() * REFINE_SCALE
+        return z.detach()
+
+    def _reading_error(self, offsets: torch.Tensor, readings: torch.Tensor, z: torch.Tensor) -> float:
+        """The refinement model's squared error over the readings with the context ``z``."""
+        with torch.no_grad():
+            return float(((self.reading_net(torch.cat([offsets, z.expand(len(offsets), 3)], dim=1))[:, 0]
+                           - readings) ** 2).sum())
 
     def _saved_extras(self) -> dict[str, Any]:
         """The step count, whether it was meta-learned, the start, the step sizes and the refinement model if any."""

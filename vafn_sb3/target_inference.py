@@ -320,8 +320,10 @@ class GradientInferencePolicy(TargetInferencePolicy):
         super()._record(active, position, distance)
         # a new reading of a waypoint already estimated (not a repeated point, not a new waypoint) refines it
         if self.refines and estimated and self._estimate is not None and len(self._points) > n_points:
+            # Gauss-Newton also restarts from the prior (the shared region's centre): a wild first estimate is dropped
+            restarts = (self.priors[self._active],) if self.refine_solver == "gauss-newton" else ()
             self._estimate = self.estimator.refine(self._points, self._distances, self._estimate, self.refine_steps,
-                                                   self.refine_solver)
+                                                   self.refine_solver, restarts=restarts)
 
     def adapt(self, env: gym.Env, task: Any = None, n_support: int = 0, k: int = 1,
               seed: int | None = None) -> GradientInferencePolicy:
