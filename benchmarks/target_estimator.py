@@ -107,8 +107,10 @@ def collect_or_load(args: argparse.Namespace, model: Any) -> tuple[dict, dict, f
     env = benchmark.make_env()
     try:
         start = time.process_time()
-        train = collect_waypoint_readings(model, env, benchmark.train_tasks, TRAIN_EPISODE_SEED, args.n_readings)
-        test = collect_waypoint_readings(model, env, benchmark.test_tasks, TEST_EPISODE_SEED, args.n_readings)
+        train, test = (collect_waypoint_readings(model, env, tasks, seed, args.n_readings,
+                                                 heading_after=args.heading_after)
+                       for tasks, seed in ((benchmark.train_tasks, TRAIN_EPISODE_SEED),
+                                           (benchmark.test_tasks, TEST_EPISODE_SEED)))
         collect_cpu_s = time.process_time() - start
     finally:
         env.close()
@@ -141,6 +143,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--max-length", type=int, default=10,
                         help="longest instruction (long ones give later waypoints, from arms that have moved a lot)")
     parser.add_argument("--n-readings", type=int, default=ESTIMATOR_READINGS, help="readings the estimator reads")
+    parser.add_argument("--heading-after", type=int, default=None,
+                        help="collecting: the arm heads for the prior goal until this many readings, then for its "
+                             "target (None: --n-readings, as inference='learned' moves; 4 with --n-readings 24: "
+                             "readings of an arm heading for its target, as an adapted policy's arm does)")
     parser.add_argument("--estimator", choices=list(ESTIMATORS), default="regression",
                         help="what to train: the regression network, the meta-learned gradient estimator, or its "
                              "baseline without meta-learning")
@@ -164,6 +170,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         parser.error("--train-tasks and --test-tasks must be >= 1")
     if args.n_readings < 4:
         parser.error("--n-readings must be at least 4 (a point in space needs four distances)")
+    if args.heading_after is not None and not 4 <= args.heading_after <= args.n_readings:
+        parser.error("--heading-after must be between 4 and --n-readings")
     if args.steps < 0 or min(args.report_k) < 0:
         parser.error("--steps and --report-k must be >= 0")
     if args.refine_readings is not None and args.estimator == "regression":

@@ -192,6 +192,14 @@ def test_learned_inference_moves_as_probe_inference_and_collects_labelled_readin
     assert readings["points"].shape == (n, 6, 3) and readings["distances"].shape == (n, 6)
     for points, distances, target in zip(readings["points"], readings["distances"], readings["targets"]):
         assert np.allclose(np.linalg.norm(points - target, axis=1), distances, atol=1e-4)  # the label is the target
+    # heading for the target after the first four readings (as an adapted arm does) instead of the prior goal
+    prior, heading = (collect_waypoint_readings(goal_oracle, env, tasks[:2], seed=0, n_readings=10, progress=False,
+                                                heading_after=after) for after in (None, 4))
+    assert len(heading["points"]) == len(prior["points"]) > 0
+    assert np.allclose(heading["points"][0, :4], prior["points"][0, :4])  # the episode's first readings, the same
+    assert not np.allclose(heading["points"][:, 4:], prior["points"][:, 4:])  # then the arm moves elsewhere
+    with pytest.raises(ValueError, match="heading_after must be in"):
+        collect_waypoint_readings(goal_oracle, env, tasks[:1], seed=0, n_readings=10, heading_after=3)
     env.close()
 
 

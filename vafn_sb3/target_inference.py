@@ -494,54 +494,57 @@ def inference_policy_for_env(
 
 
 class _TrilaterationAfter:
-    """Trilateration withheld until ``n_readings`` readings: how ``inference="learned"`` moves, with exact estimates.
-
-    It keeps every waypoint's first ``n_readings`` readings: the policy asks it once per new reading while it has no
-    estimate, so it sees exactly ``n_readings`` readings once per waypoint.
-    """
+    """Trilateration withheld until ``n_readings`` readings: how ``inference="learned"`` moves, with exact estimates."""
 
     def __init__(self, n_readings: int) -> None:
         self.n_readings = n_readings
-        self.first_readings: list[tuple[np.ndarray, np.ndarray]] = []
 
     def __call__(self, points: Sequence[np.ndarray], distances: Sequence[float]) -> np.ndarray | None:
-        if len(points) == self.n_readings:
-            self.first_readings.append((np.array(points), np.array(distances)))
         return trilaterate(points, distances) if len(points) >= self.n_readings else None
 
 
 def collect_waypoint_readings(
     model: Any, env: gym.Env, tasks: Sequence[Any], seed: int, n_readings: int = ESTIMATOR_READINGS,
-    progress: bool = True,
+    progress: bool = True, heading_after: int | None = None,
 ) -> dict[str, np.ndarray]:
     """Each waypoint's first ``n_readings`` readings of ``model`` on hidden targets, with its true target (the label).
 
     Runs one episode per task of ``tasks`` on ``env``: the goal-observing ``model`` through a
     :class:`TargetInferencePolicy` that moves as ``inference="learned"`` does (probe moves, then the prior goal until
-    ``n_readings`` readings), so the readings are those an estimator will be given, and from then on toward the
-    trilaterated target. Each label is read from the env's task, which a deployed policy never sees.
+    ``heading_after`` readings, default ``n_readings``), so the readings are those an estimator will be given, and
+    from then on toward the trilaterated target. ``heading_after=ESTIMATOR_READINGS`` with more ``n_readings``: the
+    readings of an arm heading for its target after the first ones, as an adapted policy's arm does (what the
+    refinement model reads). Each label is read from the env's task, which a deployed policy never sees.
 
     :return: ``points (N, n_readings, 3)``, ``distances (N, n_readings)``, ``targets (N, 3)`` in the observation
         frame, and ``arms (N,)``; a waypoint reached in fewer readings is left out.
     """
-    estimator = _TrilaterationAfter(n_readings)
-    policy = TargetInferencePolicy.for_env(model, env, inference="learned", estimator=estimator)
+    heading_after = n_readings if heading_after is None else int(heading_after)
+    if not ESTIMATOR_READINGS <= heading_after <= n_readings:
+        raise ValueError(f"heading_after must be in [{ESTIMATOR_READINGS}, n_readings={n_readings}], got "
+                         f"{heading_after}")
+    policy = TargetInferencePolicy.for_env(model, env, inference="learned",
+                                           estimator=_TrilaterationAfter(heading_after))
     base = env.unwrapped
-    targets, arms = [], []
+    points, distances, targets, arms = [], [], [], []
     for index, task in enumerate(tqdm(tasks, desc="collecting readings", disable=not progress)):
         base.set_task(task)
         policy.reset()
         obs, _ = env.reset(seed=seed + index)
-        done = False
+        done, recorded = False, 0
         while not done:
-            n_waypoints = len(estimator.first_readings)
             action, _ = policy.predict(obs)
-            if len(estimator.first_readings) > n_waypoints:  # this step completed a waypoint's readings: label them
-                active = policy.readings[0]
+            active, waypoint_points, waypoint_distances = policy.readings
+            if len(waypoint_points) < recorded:  # a new waypoint started
+                recorded = 0
+            if len(waypoint_points) == n_readings and recorded < n_readings:  # this step completed its readings
+                recorded = n_readings
+                points.append(np.array(waypoint_points))
+                distances.append(np.array(waypoint_distances))
                 targets.append(base.observed_point(active, base.task.current_target(active)))
                 arms.append(active)
             obs, _, terminated, truncated, _ = env.step(action)
             done = terminated or truncated
-    points, distances = zip(*estimator.first_readings) if targets else ((), ())
     return {"points": np.array(points), "distances": np.array(distances), "targets": np.array(targets),
             "arms": np.array(arms)}
+
