@@ -98,6 +98,15 @@ def refined(estimator: GradientTargetEstimator, readings: dict[str, np.ndarray],
     return estimates
 
 
+def joined_readings(paths: list[Path]) -> tuple[dict, dict]:
+    """The train and test splits of several ``--refine-readings`` files, each split concatenated in the given order."""
+    splits = [load_readings(path, "--refine-readings") for path in paths]
+    if len({split[0]["points"].shape[1] for split in splits}) > 1:
+        raise SystemExit("--refine-readings: the files have different numbers of readings per waypoint")
+    return tuple({key: np.concatenate([split[index][key] for split in splits]) for key in splits[0][index]}
+                 for index in (0, 1))
+
+
 def collect_or_load(args: argparse.Namespace, model: Any) -> tuple[dict, dict, float | None]:
     """Train and test readings: from ``--readings`` (no collection CPU time), or collected and saved to ``--out``."""
     if args.readings is not None:
@@ -155,10 +164,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         help="gradient steps at which the gradient estimators' held-out error is reported")
     parser.add_argument("--readings", type=Path, default=None,
                         help="readings.npz of an earlier run to train on instead of collecting")
-    parser.add_argument("--refine-readings", type=Path, default=None,
-                        help="with --estimator gradient(-plain): readings.npz of a run with many readings per "
-                             "waypoint (e.g. --n-readings 24) to fit the estimator's refinement model on; its test "
-                             "split measures the refined error")
+    parser.add_argument("--refine-readings", type=Path, nargs="+", default=None,
+                        help="with --estimator gradient(-plain): readings.npz of runs with many readings per "
+                             "waypoint (e.g. --n-readings 24, with and without --heading-after 4; all with the same "
+                             "number) to fit the estimator's refinement model on; their test splits measure the "
+                             "refined error")
     parser.add_argument("--hidden", type=int, nargs="+", default=None,
                         help="hidden layer sizes (None: 256 256 for regression, 128 128 for the gradient estimators)")
     parser.add_argument("--epochs", type=int, default=200, help="passes over the training readings")
@@ -185,8 +195,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             model = goal_policy(args)
         except (ValueError, FileNotFoundError) as error:
             parser.error(f"--model: {error}")
-    refine_train, refine_test = ({}, {}) if args.refine_readings is None else load_readings(args.refine_readings,
-                                                                                            "--refine-readings")
+    refine_train, refine_test = ({}, {}) if args.refine_readings is None else joined_readings(args.refine_readings)
     args.out.mkdir(parents=True, exist_ok=True)
     train, test, collect_cpu_s = collect_or_load(args, model)
     report: dict[str, Any] = {
@@ -204,7 +213,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if gradient:
         report["steps"] = args.steps
     if refine_train:
-        report["refinement"] = {"readings": str(args.refine_readings), "train_readings": len(refine_train["points"]),
+        report["refinement"] = {"readings": [str(path) for path in args.refine_readings],
+                                "train_readings": len(refine_train["points"]),
                                 "test_readings": len(refine_test["points"]),
                                 "readings_per_waypoint": refine_train["points"].shape[1], "refine_steps": REFINE_STEPS}
     for seed in args.seeds:

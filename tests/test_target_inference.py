@@ -222,11 +222,12 @@ def test_target_estimator_benchmark_writes_estimators_and_errors(load_benchmark,
     # (the eight readings per waypoint also fit the refinement model, whose refined error is reported)
     gradient = module.main(["--estimator", "gradient", "--readings", str(tmp_path / "readings.npz"), "--steps", "2",
                             "--report-k", "0", "2", "--epochs", "2", "--hidden", "8", "--out", str(tmp_path / "g"),
-                            "--refine-readings", str(tmp_path / "readings.npz")])
+                            "--refine-readings", str(tmp_path / "readings.npz"), str(tmp_path / "readings.npz")])
     assert gradient["collect_cpu_s"] is None and gradient["train_readings"] == report["train_readings"]
     assert set(gradient["learned"]["0"]["test_by_k"]) == {"0", "2"}
     assert set(gradient["learned"]["0"]["test_refined"]) == {"first", "refined_gauss-newton", "refined_gradient"}
     assert gradient["refinement"]["readings_per_waypoint"] == 8
+    assert gradient["refinement"]["train_readings"] == 2 * report["train_readings"]  # two files, joined
     loaded = GradientTargetEstimator.load(tmp_path / "g" / "gradient_estimator_seed0.pt")
     assert loaded.steps == 2 and loaded.reading_net is not None
     with pytest.raises(SystemExit):  # only the gradient estimator has a refinement model
