@@ -88,7 +88,10 @@ def load_readings(path: Path, flag: str) -> tuple[dict, dict]:
 
 def refined(estimator: GradientTargetEstimator, readings: dict[str, np.ndarray], first: np.ndarray,
             solver: str) -> np.ndarray:
-    """The ``first`` estimates refined at every later reading of each row, as ``GradientInferencePolicy`` does."""
+    """The ``first`` estimates refined at every later reading of each row by ``solver``'s default steps.
+
+    As ``GradientInferencePolicy`` refines, except for its restart from the shared region's centre (the env's).
+    """
     n = estimator.n_readings
     estimates = first.copy()
     for row, (points, distances) in enumerate(zip(readings["points"], readings["distances"])):

@@ -17,11 +17,11 @@ Estimating once from the first readings leaves a few waypoints several centimetr
 precise where the training targets thin out, at the edges of the target region). :meth:`GradientTargetEstimator.refine`
 keeps adapting the same three numbers as the arm moves: a second, per-reading model ``f(offset, z) -> distance``
 (:meth:`GradientTargetEstimator.fit_refinement`, fitted by regression on readings along whole approaches, so it reads
-any number of readings at any offsets) takes plain gradient steps on ``z`` over every reading so far, starting from the
-current estimate. Readings centimetres apart constrain the target far better than the first millimetre moves. The
-steps are Gauss-Newton steps by default (the model's Jacobian in ``z`` from one backward pass, the step a least-squares
-solve): an arm's readings along its approach lie nearly on a line, so the error is flat across it and plain gradient
-steps (``solver="gradient"``) barely move the estimate in that direction.
+any number of readings at any offsets) takes steps on ``z`` over every reading so far, starting from the current
+estimate (and from any restart point given). Readings centimetres apart constrain the target far better than the first
+millimetre moves. The steps are Gauss-Newton steps by default (the model's Jacobian in ``z`` from one backward pass,
+the step a least-squares solve): an arm's readings along its approach lie nearly on a line, so the error is flat
+across it and plain gradient steps (``solver="gradient"``) barely move the estimate in that direction.
 """
 
 from __future__ import annotations

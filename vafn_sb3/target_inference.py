@@ -531,14 +531,14 @@ def collect_waypoint_readings(
         base.set_task(task)
         policy.reset()
         obs, _ = env.reset(seed=seed + index)
-        done, recorded = False, 0
+        done, labelled = False, False
         while not done:
             action, _ = policy.predict(obs)
             active, waypoint_points, waypoint_distances = policy.readings
-            if len(waypoint_points) < recorded:  # a new waypoint started
-                recorded = 0
-            if len(waypoint_points) == n_readings and recorded < n_readings:  # this step completed its readings
-                recorded = n_readings
+            if len(waypoint_points) < n_readings:  # a waypoint still collecting (a new one starts with one reading)
+                labelled = False
+            elif not labelled:  # this step completed the waypoint's readings: label them
+                labelled = True
                 points.append(np.array(waypoint_points))
                 distances.append(np.array(waypoint_distances))
                 targets.append(base.observed_point(active, base.task.current_target(active)))
