@@ -329,7 +329,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                              "--estimator gradient; None: the packaged estimator)")
     parser.add_argument("--refine-steps", type=int, default=None,
                         help="infer-gradient: steps per later reading that refine the estimate (0: estimate once from "
-                             "the first readings; None: 1 Gauss-Newton or 5 gradient steps)")
+                             f"the first readings; None: the solver's, {REFINE_STEPS})")
     parser.add_argument("--refine-solver", choices=list(REFINE_SOLVERS), default=REFINE_SOLVER,
                         help="infer-gradient: how the refinement steps: Gauss-Newton or plain gradient steps")
     parser.add_argument("--min-length", type=int, default=1, help="shortest test instruction")

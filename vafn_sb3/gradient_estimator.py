@@ -240,13 +240,13 @@ class GradientTargetEstimator(FirstReadingsEstimator):
             for _ in range(steps):
                 if solver == "gradient":
                     z = z.detach().requires_grad_(True)
-                    predicted = self.reading_net(torch.cat([offsets, z.expand(len(offsets), 3)], dim=1))[:, 0]
+                    predicted = self._distances(offsets, z)
                     (gradient,) = torch.autograd.grad(((predicted - readings) ** 2).sum(), z)
                     step = REFINE_STEP_SIZE * gradient
                 else:
                     # one copy of z per reading: the gradient of the summed predictions is then the Jacobian, row by row
                     rows = z.detach().expand(len(offsets), 3).clone().requires_grad_(True)
-                    predicted = self.reading_net(torch.cat([offsets, rows], dim=1))[:, 0]
+                    predicted = self._distances(offsets, rows)
                     (jacobian,) = torch.autograd.grad(predicted.sum(), rows)
                     residual = (predicted.detach() - readings)[:, None]
                     step = torch.linalg.lstsq(jacobian, residual).solution[:, 0]
@@ -256,11 +256,14 @@ class GradientTargetEstimator(FirstReadingsEstimator):
                 z = z.detach() - step * min(1.0, REFINE_MAX_STEP / max(step.norm().item(), 1e-12))
         return z.detach()
 
+    def _distances(self, offsets: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """The refinement model's distance at each offset ``(N, 3)`` with the context ``z``: ``(3,)`` or one per row."""
+        return self.reading_net(torch.cat([offsets, z.expand(len(offsets), 3)], dim=1))[:, 0]
+
     def _reading_error(self, offsets: torch.Tensor, readings: torch.Tensor, z: torch.Tensor) -> float:
         """The refinement model's squared error over the readings with the context ``z``."""
         with torch.no_grad():
-            return float(((self.reading_net(torch.cat([offsets, z.expand(len(offsets), 3)], dim=1))[:, 0]
-                           - readings) ** 2).sum())
+            return float(((self._distances(offsets, z) - readings) ** 2).sum())
 
     def _saved_extras(self) -> dict[str, Any]:
         """The step count, whether it was meta-learned, the start, the step sizes and the refinement model if any."""

@@ -43,6 +43,7 @@ from vafn_sb3.target_inference import (  # noqa: E402
     INFERENCE_MODES,
     REFINE_SOLVER,
     REFINE_SOLVERS,
+    REFINE_STEPS,
     inference_policy_for_env,
     load_estimator,
 )
@@ -96,7 +97,7 @@ def main(argv: list[str] | None = None) -> None:
                              "its --estimator regression or gradient; None: the packaged estimator)")
     parser.add_argument("--refine-steps", type=int, default=None,
                         help="--infer-targets gradient: steps per later reading that refine the estimate (0: estimate "
-                             "once; None: 1 Gauss-Newton or 5 gradient steps)")
+                             f"once; None: the solver's, {REFINE_STEPS})")
     parser.add_argument("--refine-solver", choices=list(REFINE_SOLVERS), default=REFINE_SOLVER,
                         help="--infer-targets gradient: how the refinement steps: Gauss-Newton or plain gradient steps")
     parser.add_argument("--n-support", type=int, default=25, help="support transitions per instruction (twin env)")
