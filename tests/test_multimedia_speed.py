@@ -124,8 +124,8 @@ def _folded_model():
 
 
 def test_audio_inference_equals_model_encode():
-    """Bit for bit while model.encode uses the native kernels (short clips); within float rounding for long clips,
-    where model.encode goes through oneDNN."""
+    """Within float rounding: 1e-5 while model.encode uses the native kernels (short clips; bit for bit on some CPUs,
+    about 1e-6 apart on others), 1e-4 for long clips, where model.encode goes through oneDNN."""
     from vafn_media.model import AudioInference
 
     unfolded, folded = _folded_model()
@@ -140,14 +140,14 @@ def test_audio_inference_equals_model_encode():
             got = fast(features)
             assert got.shape == want.shape
             if exact:
-                assert torch.equal(got, want), frames
+                assert torch.allclose(got, want, rtol=0, atol=1e-5), frames
             else:
                 assert torch.allclose(got, want, atol=1e-4), frames
 
 
 def test_dilated_convolutions_by_phases_equal_the_dilated_kernel():
-    """AudioInference runs a dilated convolution as undilated ones of the input's phases: the same numbers, bit for
-    bit, at every length (a length up to the dilation goes to the dilated kernel)."""
+    """AudioInference runs a dilated convolution as undilated ones of the input's phases: the same numbers within float
+    rounding at every length (bit for bit on some CPUs; a length up to the dilation goes to the dilated kernel)."""
     from vafn_media.model import _NATIVE_DILATED2D, AudioInference
 
     torch.manual_seed(0)
@@ -158,7 +158,8 @@ def test_dilated_convolutions_by_phases_equal_the_dilated_kernel():
                 x = torch.randn(batch, 96, length)
                 want = _NATIVE_DILATED2D(x[:, :, None, :], spec[1], (1, 3), spec[2], (1, 1), (0, dilation),
                                          (1, dilation))[:, :, 0]
-                assert torch.equal(AudioInference._conv(x, spec), want), (dilation, batch, length)
+                got = AudioInference._conv(x, spec)
+                assert torch.allclose(got, want, rtol=0, atol=1e-5), (dilation, batch, length)
 
 
 @pytest.fixture(scope="module")
