@@ -187,19 +187,6 @@ def test_sac_gradient_steps_follow_every_meta_iteration(sac_gradient_steps, expe
     assert calls == ([expected] * 2 if expected else [])
 
 
-def test_the_same_seed_trains_bit_identical_weights_and_another_seed_does_not():
-    """Warm-up SAC steps and meta-iterations (task draws, supports, inner and outer steps) all follow the seed."""
-    def trained(seed: int) -> list[torch.Tensor]:
-        model = tiny_model(seed=seed, learning_starts=32, warmup_steps=64)
-        model.learn(256, log_interval=None)
-        assert model.meta_iterations >= 1
-        return [t.clone() for t in model.policy.state_dict().values()]
-
-    first, again, other = trained(0), trained(0), trained(1)
-    assert all(torch.equal(a, b) for a, b in zip(first, again))
-    assert not all(torch.equal(a, b) for a, b in zip(first, other))
-
-
 def snapshot(model: MAMLSAC) -> list[torch.Tensor]:
     """Every tensor adapt() must leave alone: parameters, target net, α, inner step sizes, optimiser moments."""
     tensors = [t.clone() for t in model.policy.state_dict().values()]
@@ -208,6 +195,19 @@ def snapshot(model: MAMLSAC) -> list[torch.Tensor]:
         for state in optimizer.state_dict()["state"].values():
             tensors += [v.clone() for v in state.values() if torch.is_tensor(v)]
     return tensors
+
+
+def test_the_same_seed_trains_bit_identical_weights_and_another_seed_does_not():
+    """Warm-up SAC steps and meta-iterations (task draws, supports, inner and outer steps) all follow the seed."""
+    def trained(seed: int) -> list[torch.Tensor]:
+        model = tiny_model(seed=seed, learning_starts=32, warmup_steps=64)
+        model.learn(256, log_interval=None)
+        assert model.meta_iterations >= 1
+        return snapshot(model)
+
+    first, again, other = trained(0), trained(0), trained(1)
+    assert all(torch.equal(a, b) for a, b in zip(first, again, strict=True))
+    assert not all(torch.equal(a, b) for a, b in zip(first, other, strict=True))
 
 
 def test_adapt_leaves_model_bit_identical_and_adapts(model):

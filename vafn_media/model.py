@@ -193,9 +193,8 @@ class AudioInference:
     PyTorch's native convolution kernels. Up to about 4.3 s of audio (no convolution input over 20,480 values) that
     is what ``model.encode`` runs too, so Φ is the same up to float rounding (bit for bit on some CPUs, about 1e-6
     apart on others); for longer clips ``model.encode`` switches to oneDNN (see ``_NATIVE_CONV2D``), which sums in
-    another order: Φ then differs by float rounding (about 1e-6). Use
-    :meth:`build`, which returns None for a model it cannot run (BatchNorm not folded, other layers); callers then use
-    ``model.encode``.
+    another order: Φ then differs by float rounding (about 1e-6). Use :meth:`build`, which returns None for a model it
+    cannot run (BatchNorm not folded, other layers); callers then use ``model.encode``.
 
     :param steps: (kind, convolution spec, relu) per layer; kind "conv" or "residual" (x + relu(conv(x))).
     :param adapter: convolution spec of the 1x1 adapter.
