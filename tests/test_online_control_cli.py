@@ -85,6 +85,34 @@ def test_online_control_runs_the_packaged_goal_observing_policy_on_hidden_target
         assert exit_info.value.code == 2
 
 
+def test_append_to_gathers_labelled_runs_in_one_table_and_a_rerun_replaces_its_rows(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import csv
+
+    table = tmp_path / "table.csv"
+    run = ["--policy", "scripted", "--schedule", "0:1;1:2,1", "--steps", "200", "--out", str(tmp_path / "run"),
+           "--append-to", str(table)]
+    for label in ("first", "second", "first"):  # the third run replaces the first one's rows
+        online_control.main([*run, "--label", label])
+    with table.open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert [(row["inference"], row["model_seed"], row["instruction"]) for row in rows] == [
+        ("second", "0", "1"), ("second", "0", "2,1"), ("first", "0", "1"), ("first", "0", "2,1")]
+    assert list(rows[0]) == online_control.TABLE_COLUMNS and all(row["success"] == "True" for row in rows)
+    # a table of other columns is refused before the run, and left as it was
+    (tmp_path / "other.csv").write_text("a,b\n1,2\n")
+    with pytest.raises(SystemExit) as exit_info:
+        online_control.main([*run[:-1], str(tmp_path / "other.csv")])
+    assert exit_info.value.code == 2 and "not a table of online_control.py runs" in capsys.readouterr().err
+    assert (tmp_path / "other.csv").read_text() == "a,b\n1,2\n"
+    # a model whose file name gives no seed needs --model-seed
+    with pytest.raises(SystemExit) as exit_info:
+        online_control.main(["--model", str(tmp_path / "model.zip"), *run[2:], "--label", "x"])
+    assert exit_info.value.code == 2 and "--model-seed" in capsys.readouterr().err
+    assert online_control.model_seed_of(Path("runs/mtsac_ThreeArmReachGoal-v1_seed3.zip")) == 3
+
+
 def test_task_family_covers_the_frame_and_what_a_waiting_arm_observes() -> None:
     from vafn_sb3.loading import family_mismatch, task_family
 

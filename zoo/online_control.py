@@ -15,13 +15,21 @@ Examples::
     # a model trained with observed targets (observe_goal=True) on hidden targets, through target inference
     python zoo/online_control.py --model runs/goal_mappo.zip --infer-targets probe --targets per_arm \\
         --schedule "0:1,2,3;400:3,1,2" --steps 800 --out runs/online_hidden
+
+    # ... and its rows added to a table of several runs, labelled (a rerun replaces its own rows)
+    python zoo/online_control.py --model runs/goal_mappo_seed3.zip --infer-targets gradient --targets per_arm \\
+        --schedule "0:1,2,3;400:3,1,2" --steps 800 --out runs/online_hidden \\
+        --append-to results/online_hidden/stream_gradient_vs_probe.csv --label mappo_gradient
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
+import re
 import sys
 import warnings
+from dataclasses import fields
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -34,10 +42,11 @@ import torch  # noqa: E402
 
 import vafn_gym  # noqa: E402,F401  (registers the env IDs)
 from vafn_gym import TARGET_MODES, RandomPolicy, ScriptedController  # noqa: E402
+from vafn_gym.files import write_csv_rows  # noqa: E402
 from vafn_gym.queue import PoissonArrivals, ScheduledArrivals  # noqa: E402
 from vafn_sb3 import load_pretrained  # noqa: E402
 from vafn_sb3.loading import family_mismatch, load_model, training_env  # noqa: E402
-from vafn_sb3.online import OnlineController  # noqa: E402
+from vafn_sb3.online import InstructionLog, OnlineController  # noqa: E402
 from vafn_sb3.target_inference import (  # noqa: E402
     ESTIMATOR_MODES,
     INFERENCE_MODES,
@@ -61,6 +70,49 @@ def parse_schedule(text: str) -> dict[int, list[str]]:
     if not schedule:
         raise argparse.ArgumentTypeError("the schedule is empty")
     return schedule
+
+
+#: Columns a new table of several runs (``--append-to``) gets: the run's label and model seed, then the log's columns.
+TABLE_COLUMNS = ["inference", "model_seed", *(field.name for field in fields(InstructionLog))]
+
+
+def read_table(table: Path) -> tuple[list[str], list[dict[str, str]]]:
+    """The columns and rows of a table of several runs (:data:`TABLE_COLUMNS` and none if it does not exist).
+
+    An existing table keeps its own columns (``inference``, ``model_seed``, then any of the log's); ``ValueError`` if
+    they are not such columns.
+    """
+    if not table.is_file():
+        return TABLE_COLUMNS, []
+    with table.open(newline="") as handle:
+        reader = csv.DictReader(handle)
+        columns = list(reader.fieldnames or [])
+        if columns[:2] != TABLE_COLUMNS[:2] or not set(columns) <= set(TABLE_COLUMNS):
+            raise ValueError(f"{table} has the columns {columns}: not a table of online_control.py runs (inference, "
+                             f"model_seed, then any of {TABLE_COLUMNS[2:]})")
+        return columns, list(reader)
+
+
+def append_run(table: Path, run_log: Path, label: str, model_seed: int) -> int:
+    """Add the rows of one run's ``online_log.csv`` to ``table`` as ``inference=label, model_seed=model_seed``.
+
+    Rows of ``table`` with the same label and model seed (an earlier run of the same thing) are replaced, others kept;
+    returns the number of rows added.
+    """
+    columns, rows = read_table(table)
+    kept = [row for row in rows if (row["inference"], row["model_seed"]) != (label, str(model_seed))]
+    with run_log.open(newline="") as handle:
+        added = [{"inference": label, "model_seed": str(model_seed), **row} for row in csv.DictReader(handle)]
+    merged = [{column: row[column] for column in columns} for row in kept + added]
+    if merged:
+        write_csv_rows(merged, table)
+    return len(added)
+
+
+def model_seed_of(path: Path | None) -> int | None:
+    """The training seed in a model file name such as ``..._seed3.zip`` (None if it names none)."""
+    match = re.search(r"seed(\d+)", path.stem) if path is not None else None
+    return None if match is None else int(match.group(1))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -104,7 +156,27 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the arrivals, support rollouts and env")
     parser.add_argument("--out", type=Path, default=Path("runs/online"),
                         help="folder for online_log.csv and online_distances.png")
+    parser.add_argument("--append-to", type=Path, default=None,
+                        help="also add this run's rows to this CSV of several runs, with the columns inference "
+                             "(--label) and model_seed first; rows of an earlier run with the same label and seed "
+                             "are replaced")
+    parser.add_argument("--label", default=None,
+                        help="--append-to: the run's label (None: --infer-targets, --policy or --pretrained)")
+    parser.add_argument("--model-seed", type=int, default=None,
+                        help="--append-to: the model's training seed (None: from a '..._seedN.zip' --model name; 0 "
+                             "for --policy and --pretrained)")
     args = parser.parse_args(argv)
+    if args.append_to is not None:
+        args.label = args.label or args.infer_targets or args.policy or args.pretrained
+        if args.model_seed is None:
+            args.model_seed = model_seed_of(args.model) if args.model is not None else 0
+        if args.label is None or args.model_seed is None:
+            parser.exit(2, "online_control.py: error: --append-to needs --label and --model-seed (neither could be "
+                           "told from the other arguments)\n")
+        try:
+            read_table(args.append_to)  # before the run, not after it
+        except ValueError as error:
+            parser.exit(2, f"online_control.py: error: {error}\n")
     torch.set_num_threads(1)
 
     env = gym.make(
@@ -181,6 +253,9 @@ def main(argv: list[str] | None = None) -> None:
     for error in controller.errors:
         print("error:", error)
     print(f"wrote {csv_path} and {png_path}")
+    if args.append_to is not None:
+        added = append_run(args.append_to, csv_path, args.label, args.model_seed)
+        print(f"added {added} rows to {args.append_to} as inference={args.label}, model_seed={args.model_seed}")
 
 
 if __name__ == "__main__":
