@@ -67,13 +67,14 @@ def test_online_control_infers_hidden_targets_for_a_goal_observing_model(
     assert exit_info.value.code == 2 and "--target-estimator needs --infer-targets learned" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("inference", ["probe", "learned", "gradient"])  # learned, gradient: the packaged estimators
+@pytest.mark.parametrize("algo, inference", [("mappo", "probe"), ("mappo", "learned"), ("mappo", "gradient"),
+                                             ("mtsac", "gradient")])  # learned, gradient: the packaged estimators
 def test_online_control_runs_the_packaged_goal_observing_policy_on_hidden_targets(
-    tmp_path: Path, inference: str
+    tmp_path: Path, algo: str, inference: str
 ) -> None:
     import csv
 
-    online_control.main(["--pretrained", "mappo", "--infer-targets", inference, "--targets", "per_arm",
+    online_control.main(["--pretrained", algo, "--infer-targets", inference, "--targets", "per_arm",
                          "--schedule", "0:3,1", "--steps", "250", "--out", str(tmp_path)])
     with (tmp_path / "online_log.csv").open() as handle:
         (row,) = csv.DictReader(handle)

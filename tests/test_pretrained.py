@@ -55,8 +55,13 @@ def test_unknown_pair_lists_what_is_available():
         load_pretrained("ppo")
 
 
+#: The packaged policies that observe their targets: run on hidden targets through target inference.
+GOAL_OBSERVING = [algo for algo, env_id in available_pretrained() if env_id == "VAFN/ThreeArmReachGoal-v1"]
+
+
 @pytest.mark.parametrize("inference", ["probe", "gradient"])
-def test_packaged_goal_observing_mappo_completes_hidden_target_instructions_through_target_inference(inference):
+@pytest.mark.parametrize("algo", GOAL_OBSERVING)
+def test_packaged_goal_observing_policy_completes_hidden_target_instructions_through_target_inference(algo, inference):
     """Trilateration, and 10 gradient steps of the packaged estimator (refined at every later reading)."""
     import gymnasium as gym
 
@@ -65,10 +70,10 @@ def test_packaged_goal_observing_mappo_completes_hidden_target_instructions_thro
 
     hidden = "VAFN/ThreeArmReachHidden-v1"
     env = gym.make(hidden)
-    policy = inference_policy_for_env(load_pretrained("mappo", "VAFN/ThreeArmReachGoal-v1"), env, inference, steps=10)
+    policy = inference_policy_for_env(load_pretrained(algo, "VAFN/ThreeArmReachGoal-v1"), env, inference, steps=10)
     episodes = []
     for index, task in enumerate(InstructionBenchmark(hidden, 1, 4, n_test=N_TASKS).test_tasks):
         env.unwrapped.set_task(task)
         episodes.append(run_episode(policy, env, seed=index))
     env.close()
-    assert all(e["success"] and not e["collision"] for e in episodes), [e["outcome"] for e in episodes]
+    assert all(e["success"] and not e["collision"] for e in episodes), (algo, [e["outcome"] for e in episodes])

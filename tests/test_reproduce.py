@@ -105,10 +105,10 @@ def test_reproduce_smoke_writes_every_artefact(tmp_path: Path) -> None:
     for name in ("adaptation/hidden/adaptation.png", "adaptation/order/adaptation.png", "training_costs.csv",
                  "fig4_online_sac.png", "fig4_online_scripted.png", "table1_smoke.md", "SUMMARY.md"):
         assert (out / name).is_file(), f"{name} missing; stderr: {result.stderr[-2000:]}"
-    # hidden: scripted, random, the packaged goal MAPPO with probe and learned inference at K = 0; the packaged
-    # hidden-family MAML-SAC and MTSAC, the trained maml_sac and mappo and the packaged goal MAPPO with gradient
-    # inference at K = 0 and 1 (1 task, 1 seed)
-    assert len((out / "adaptation" / "hidden" / "adaptation.csv").read_text().splitlines()) == 1 + 4 + 5 * 2
+    # hidden: scripted, random, the packaged goal-observing MAPPO and MTSAC with probe and learned inference at K = 0;
+    # the packaged hidden-family MAML-SAC and MTSAC, the trained maml_sac and mappo and the packaged goal-observing
+    # MAPPO and MTSAC with gradient inference at K = 0 and 1 (1 task, 1 seed)
+    assert len((out / "adaptation" / "hidden" / "adaptation.csv").read_text().splitlines()) == 1 + 6 + 6 * 2
     # order: scripted, random, maml_sac, mappo, the two packaged order-family policies, all at K = 0
     assert len((out / "adaptation" / "order" / "adaptation.csv").read_text().splitlines()) == 1 + 6
     costs = (out / "training_costs.csv").read_text().splitlines()
