@@ -91,6 +91,8 @@ def test_append_to_gathers_labelled_runs_in_one_table_and_a_rerun_replaces_its_r
 ) -> None:
     import csv
 
+    from vafn_sb3 import pretrained_info
+
     table = tmp_path / "table.csv"
     run = ["--policy", "scripted", "--schedule", "0:1;1:2,1", "--steps", "200", "--out", str(tmp_path / "run"),
            "--append-to", str(table)]
@@ -112,6 +114,14 @@ def test_append_to_gathers_labelled_runs_in_one_table_and_a_rerun_replaces_its_r
         online_control.main(["--model", str(tmp_path / "model.zip"), *run[2:], "--label", "x"])
     assert exit_info.value.code == 2 and "--model-seed" in capsys.readouterr().err
     assert online_control.model_seed_of(Path("runs/mtsac_ThreeArmReachGoal-v1_seed3.zip")) == 3
+    # a packaged policy's seed is its training seed
+    online_control.main(["--pretrained", "mtsac", "--infer-targets", "gradient", "--targets", "per_arm",
+                         "--schedule", "0:1", "--steps", "100", "--out", str(tmp_path / "run"), "--append-to",
+                         str(table)])
+    with table.open(newline="") as handle:
+        last = list(csv.DictReader(handle))[-1]
+    seed = str(pretrained_info("mtsac", "VAFN/ThreeArmReachGoal-v1")["training_seed"])
+    assert (last["inference"], last["model_seed"]) == ("gradient", seed) and last["success"] == "True"
 
 
 def test_task_family_covers_the_frame_and_what_a_waiting_arm_observes() -> None:

@@ -44,7 +44,7 @@ import vafn_gym  # noqa: E402,F401  (registers the env IDs)
 from vafn_gym import TARGET_MODES, RandomPolicy, ScriptedController  # noqa: E402
 from vafn_gym.files import write_csv_rows  # noqa: E402
 from vafn_gym.queue import PoissonArrivals, ScheduledArrivals  # noqa: E402
-from vafn_sb3 import load_pretrained  # noqa: E402
+from vafn_sb3 import load_pretrained, pretrained_info  # noqa: E402
 from vafn_sb3.loading import family_mismatch, load_model, training_env  # noqa: E402
 from vafn_sb3.online import InstructionLog, OnlineController  # noqa: E402
 from vafn_sb3.target_inference import (  # noqa: E402
@@ -163,20 +163,27 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--label", default=None,
                         help="--append-to: the run's label (None: --infer-targets, --policy or --pretrained)")
     parser.add_argument("--model-seed", type=int, default=None,
-                        help="--append-to: the model's training seed (None: from a '..._seedN.zip' --model name; 0 "
-                             "for --policy and --pretrained)")
+                        help="--append-to: the model's training seed (None: from a '..._seedN.zip' --model name, "
+                             "the packaged policy's training seed, 0 for --policy)")
     args = parser.parse_args(argv)
+    # with --infer-targets: the packaged policy trained where the targets are observed
+    pretrained_env = "VAFN/ThreeArmReachGoal-v1" if args.infer_targets else "VAFN/ThreeArmReach-v1"
     if args.append_to is not None:
         args.label = args.label or args.infer_targets or args.policy or args.pretrained
-        if args.model_seed is None:
-            args.model_seed = model_seed_of(args.model) if args.model is not None else 0
-        if args.label is None or args.model_seed is None:
-            parser.exit(2, "online_control.py: error: --append-to needs --label and --model-seed (neither could be "
-                           "told from the other arguments)\n")
         try:
+            if args.model_seed is None and args.model is not None:
+                args.model_seed = model_seed_of(args.model)
+            elif args.model_seed is None and args.pretrained is not None:
+                args.model_seed = pretrained_info(args.pretrained, pretrained_env)["training_seed"]
+            elif args.model_seed is None:
+                args.model_seed = 0  # a reference policy
             read_table(args.append_to)  # before the run, not after it
         except ValueError as error:
             parser.exit(2, f"online_control.py: error: {error}\n")
+        for name, value in (("--label", args.label), ("--model-seed", args.model_seed)):
+            if value is None:
+                parser.exit(2, f"online_control.py: error: --append-to needs {name} (it cannot be told from the "
+                               "other arguments)\n")
     torch.set_num_threads(1)
 
     env = gym.make(
@@ -190,8 +197,7 @@ def main(argv: list[str] | None = None) -> None:
         stream.arrival_process = PoissonArrivals(args.poisson_rate, sampler=stream.sampler.sample, seed=args.seed)
     trained: tuple[str | None, dict] = (None, {})
     if args.pretrained is not None:
-        # with --infer-targets: the packaged policy trained where the targets are observed
-        trained = ("VAFN/ThreeArmReachGoal-v1" if args.infer_targets else "VAFN/ThreeArmReach-v1", {})
+        trained = (pretrained_env, {})
         try:
             model = load_pretrained(args.pretrained, env_id=trained[0])
         except ValueError as error:
