@@ -43,7 +43,6 @@ import argparse
 import csv
 import glob
 import json
-import re
 import shlex
 import sys
 import time
@@ -80,7 +79,7 @@ from vafn_sb3.target_inference import (  # noqa: E402
     inference_policy_for_env,
     load_estimator,
 )
-from vafn_sb3.loading import load_model, load_model_or_exit  # noqa: E402
+from vafn_sb3.loading import load_model, load_model_or_exit, training_seed  # noqa: E402
 from zoo.registry import register_algorithms  # noqa: E402
 from zoo.study import support_budget  # noqa: E402
 
@@ -131,8 +130,8 @@ class Method:
 
 def seed_of(path: Path) -> int:
     """The training seed in a ``<algo>_seed<N>.zip`` file name (0 when the name carries none)."""
-    match = re.search(r"seed(\d+)", path.stem)
-    return int(match.group(1)) if match else 0
+    seed = training_seed(path)
+    return 0 if seed is None else seed
 
 
 def earlier_seed_models(methods: list[Method], previous: list[dict[str, Any]]) -> dict[str, list[str]]:

@@ -92,6 +92,7 @@ def test_append_to_gathers_labelled_runs_in_one_table_and_a_rerun_replaces_its_r
     import csv
 
     from vafn_sb3 import pretrained_info
+    from vafn_sb3.loading import training_seed
 
     table = tmp_path / "table.csv"
     run = ["--policy", "scripted", "--schedule", "0:1;1:2,1", "--steps", "200", "--out", str(tmp_path / "run"),
@@ -113,7 +114,7 @@ def test_append_to_gathers_labelled_runs_in_one_table_and_a_rerun_replaces_its_r
     with pytest.raises(SystemExit) as exit_info:
         online_control.main(["--model", str(tmp_path / "model.zip"), *run[2:], "--label", "x"])
     assert exit_info.value.code == 2 and "--model-seed" in capsys.readouterr().err
-    assert online_control.model_seed_of(Path("runs/mtsac_ThreeArmReachGoal-v1_seed3.zip")) == 3
+    assert training_seed(Path("runs/mtsac_ThreeArmReachGoal-v1_seed3.zip")) == 3
     # a packaged policy's seed is its training seed
     online_control.main(["--pretrained", "mtsac", "--infer-targets", "gradient", "--targets", "per_arm",
                          "--schedule", "0:1", "--steps", "100", "--out", str(tmp_path / "run"), "--append-to",

@@ -12,6 +12,7 @@ import base64
 import binascii
 import json
 import pickletools
+import re
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -124,6 +125,13 @@ def load_model_or_exit(path: str | Path, algo: str | None = None, context: str =
         return load_model(path, algo)
     except (ValueError, FileNotFoundError) as error:
         raise SystemExit(f"{context}{error}") from None
+
+
+def training_seed(path: str | Path) -> int | None:
+    """The training seed in a saved model's file name, ``..._seed<N>.zip`` as ``benchmarks/learning.py --save`` names
+    it (None if the name carries none)."""
+    match = re.search(r"seed(\d+)", Path(path).stem)
+    return None if match is None else int(match.group(1))
 
 
 def training_env(path: str | Path) -> tuple[str | None, dict[str, Any]]:

@@ -26,10 +26,9 @@ from __future__ import annotations
 
 import argparse
 import csv
-import re
 import sys
 import warnings
-from dataclasses import fields
+from dataclasses import asdict, fields
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -45,7 +44,7 @@ from vafn_gym import TARGET_MODES, RandomPolicy, ScriptedController  # noqa: E40
 from vafn_gym.files import write_csv_rows  # noqa: E402
 from vafn_gym.queue import PoissonArrivals, ScheduledArrivals  # noqa: E402
 from vafn_sb3 import load_pretrained, pretrained_info  # noqa: E402
-from vafn_sb3.loading import family_mismatch, load_model, training_env  # noqa: E402
+from vafn_sb3.loading import family_mismatch, load_model, training_env, training_seed  # noqa: E402
 from vafn_sb3.online import InstructionLog, OnlineController  # noqa: E402
 from vafn_sb3.target_inference import (  # noqa: E402
     ESTIMATOR_MODES,
@@ -93,26 +92,20 @@ def read_table(table: Path) -> tuple[list[str], list[dict[str, str]]]:
         return columns, list(reader)
 
 
-def append_run(table: Path, run_log: Path, label: str, model_seed: int) -> int:
-    """Add the rows of one run's ``online_log.csv`` to ``table`` as ``inference=label, model_seed=model_seed``.
+def append_run(table: Path, log: list[InstructionLog], label: str, model_seed: int) -> int:
+    """Add one run's per-instruction ``log`` (the rows of its ``online_log.csv``) to ``table`` as
+    ``inference=label, model_seed=model_seed``.
 
     Rows of ``table`` with the same label and model seed (an earlier run of the same thing) are replaced, others kept;
     returns the number of rows added.
     """
     columns, rows = read_table(table)
     kept = [row for row in rows if (row["inference"], row["model_seed"]) != (label, str(model_seed))]
-    with run_log.open(newline="") as handle:
-        added = [{"inference": label, "model_seed": str(model_seed), **row} for row in csv.DictReader(handle)]
+    added = [{"inference": label, "model_seed": str(model_seed), **asdict(entry)} for entry in log]
     merged = [{column: row[column] for column in columns} for row in kept + added]
     if merged:
         write_csv_rows(merged, table)
     return len(added)
-
-
-def model_seed_of(path: Path | None) -> int | None:
-    """The training seed in a model file name such as ``..._seed3.zip`` (None if it names none)."""
-    match = re.search(r"seed(\d+)", path.stem) if path is not None else None
-    return None if match is None else int(match.group(1))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -171,12 +164,13 @@ def main(argv: list[str] | None = None) -> None:
     if args.append_to is not None:
         args.label = args.label or args.infer_targets or args.policy or args.pretrained
         try:
-            if args.model_seed is None and args.model is not None:
-                args.model_seed = model_seed_of(args.model)
-            elif args.model_seed is None and args.pretrained is not None:
-                args.model_seed = pretrained_info(args.pretrained, pretrained_env)["training_seed"]
-            elif args.model_seed is None:
-                args.model_seed = 0  # a reference policy
+            if args.model_seed is None:
+                if args.model is not None:
+                    args.model_seed = training_seed(args.model)
+                elif args.pretrained is not None:
+                    args.model_seed = pretrained_info(args.pretrained, pretrained_env)["training_seed"]
+                else:
+                    args.model_seed = 0  # a reference policy
             read_table(args.append_to)  # before the run, not after it
         except ValueError as error:
             parser.exit(2, f"online_control.py: error: {error}\n")
@@ -260,7 +254,7 @@ def main(argv: list[str] | None = None) -> None:
         print("error:", error)
     print(f"wrote {csv_path} and {png_path}")
     if args.append_to is not None:
-        added = append_run(args.append_to, csv_path, args.label, args.model_seed)
+        added = append_run(args.append_to, log, args.label, args.model_seed)
         print(f"added {added} rows to {args.append_to} as inference={args.label}, model_seed={args.model_seed}")
 
 
