@@ -92,6 +92,11 @@ HIDDEN_PANEL = Panel(
                     models_from="goal_mappo_infer_probe"),
         StudyMethod("goal_mappo_infer_gradient", "mappo", GOAL_ENV, "infer-gradient",
                     models_from="goal_mappo_infer_probe"),
+        # The same context adaptation for a goal-observing MTSAC (plain goal env, no decoys): its K gradient steps
+        # adapt the 3-number target estimate the policy reads, not the policy's weights.
+        StudyMethod("goal_mtsac_infer_gradient", "mtsac", GOAL_ENV, "infer-gradient"),
+        StudyMethod("goal_mtsac_infer_probe", "mtsac", GOAL_ENV, "infer-probe",
+                    models_from="goal_mtsac_infer_gradient"),
     ),
     over_k=True,
     claim=PAPER_FIG3,
