@@ -56,7 +56,11 @@ def test_train_job_command_saves_where_the_evaluation_looks(tmp_path: Path) -> N
 
 
 def test_a_run_is_estimated_from_the_committed_training_costs(tmp_path: Path) -> None:
-    from zoo.reproduce import UNMEASURED_CPU_S_PER_STEP, estimated_cpu_s, measured_cpu_per_step, train_jobs
+    from zoo.reproduce import UNMEASURED_CPU_S_PER_STEP, estimated_cpu_s, makespan, measured_cpu_per_step, train_jobs
+
+    # Five equal jobs on two workers take three rounds, not 2.5; a long job bounds the run however many short ones
+    assert makespan([600.0] * 5, 2) == 1800.0 and makespan([1000.0, 10.0, 10.0], 2) == 1000.0
+    assert makespan([3.0, 3.0, 2.0, 2.0, 2.0], 2) == 7.0 and makespan([], 2) == 0.0  # longest first, as run_training
 
     costs = tmp_path / "results" / "adaptation" / "hidden" / "training_costs.csv"
     costs.parent.mkdir(parents=True)

@@ -166,6 +166,14 @@ def estimated_cpu_s(job: TrainJob, per_step: dict[tuple[str, str], float]) -> fl
     return job.budget.timesteps * (UNMEASURED_CPU_S_PER_STEP if rate is None else rate)
 
 
+def makespan(costs: list[float], n_workers: int) -> float:
+    """Seconds until the last of ``costs`` ends when ``n_workers`` run them longest first, as ``run_training`` does."""
+    finish = [0.0] * max(n_workers, 1)
+    for cost in sorted(costs, reverse=True):
+        finish[finish.index(min(finish))] += cost
+    return max(finish)
+
+
 def run_training(jobs: list[TrainJob], n_workers: int) -> list[dict[str, Any]]:
     """Train every job whose model is missing, ``n_workers`` processes at a time, the longest first (by the committed
     costs, which also drive the progress bar and the estimate printed before it starts); one record per job."""
@@ -188,8 +196,8 @@ def run_training(jobs: list[TrainJob], n_workers: int) -> list[dict[str, Any]]:
     total = sum(cost for cost, _ in todo)
     if todo:
         print(f"training {len(todo)} jobs ({len(jobs) - len(todo)} already trained): about {total / 3600:.1f} CPU-h "
-              f"by the committed costs, about {total / 3600 / min(n_workers, len(todo)):.1f} h with {n_workers} "
-              "job(s) at a time on free cores")
+              f"by the committed costs, about {makespan([c for c, _ in todo], n_workers) / 3600:.1f} h with "
+              f"{n_workers} job(s) at a time on free cores as fast as theirs")
     records = [run(job) for job in jobs if job.model_path.is_file()]
     with ThreadPoolExecutor(max_workers=n_workers) as pool, \
             tqdm(total=round(total), desc="training (estimated CPU-s)", unit="s") as progress:
