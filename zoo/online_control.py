@@ -56,6 +56,7 @@ from vafn_sb3.target_inference import (  # noqa: E402
     load_estimator,
 )
 from zoo.plot import plot_online_distances  # noqa: E402
+from zoo.study import GOAL_ENV, ORDER_ENV  # noqa: E402
 
 
 def parse_schedule(text: str) -> dict[int, list[str]]:
@@ -160,7 +161,7 @@ def main(argv: list[str] | None = None) -> None:
                              "the packaged policy's training seed, 0 for --policy)")
     args = parser.parse_args(argv)
     # with --infer-targets: the packaged policy trained where the targets are observed
-    pretrained_env = "VAFN/ThreeArmReachGoal-v1" if args.infer_targets else "VAFN/ThreeArmReach-v1"
+    pretrained_env = GOAL_ENV if args.infer_targets else ORDER_ENV
     if args.append_to is not None:
         args.label = args.label or args.infer_targets or args.policy or args.pretrained
         try:
