@@ -145,7 +145,6 @@ def main(argv: list[str] | None = None) -> list[tuple[str, str, float]]:
     from vafn_media.augment import phase_vocoder_stretch, resample, speed
     from vafn_media.batching import warp_vocal_tract
     from vafn_media.constants import SAMPLE_RATE
-    from vafn_media.decoding import greedy_decode
     from vafn_media.engines import available_engines, speak_text
     from vafn_media.evaluation import speech_items
     from vafn_media.features import audio_features
@@ -164,7 +163,7 @@ def main(argv: list[str] | None = None) -> list[tuple[str, str, float]]:
             with torch.inference_mode():
                 phi, _ = generator.model.encode("audio", torch.from_numpy(features)[None],
                                                 torch.tensor([features.shape[1]]))
-                return tuple(greedy_decode(phi[0], generator.model.decode(phi[0])).arms)
+                return tuple(generator.read(phi[0], "audio").arms)
         return run
 
     rows: list[tuple[str, str, float]] = []

@@ -504,6 +504,33 @@ def test_greedy_decode_variable_lengths(path, arms):
     assert all(0.9 < c <= 1.0 for c in decoded.confidences)
 
 
+def test_blank_penalty_keeps_a_half_heard_token():
+    from vafn_media.decoding import greedy_decode
+
+    logits = _logits([0, 1, 0, 0, 0, 3, 0])
+    logits[3, 2] = 4.0  # a "two" the blank narrowly wins (5 vs 4)
+    phi = torch.randn(7, LATENT_DIM)
+    assert greedy_decode(phi, logits).arms == [1, 3]
+    penalised = greedy_decode(phi, logits, blank_penalty=1.5)
+    assert penalised.arms == [1, 2, 3]
+    assert penalised.log_probs[3].argmax() == 2  # fusion rescores with the penalised posteriors
+    assert greedy_decode(phi, logits, blank_penalty=0.5).arms == [1, 3]
+    assert torch.equal(logits[3], torch.tensor([5.0, -5.0, 4.0, -5.0]))  # the caller's logits are left alone
+
+
+def test_generator_decodes_each_modality_with_its_blank_penalty(generator):
+    from vafn_media.generator import InstructionGenerator
+
+    phi = torch.randn(40, LATENT_DIM)
+    with torch.inference_mode():
+        logits = generator.model.decode(phi)
+    margin = float((logits[:, 0] - logits[:, 1:].max(-1).values).max()) + 1.0  # more than any frame's blank lead
+    reader = InstructionGenerator(generator.model, {"blank_penalty": {"audio": margin}})
+    assert all(a != 0 for a in reader.read(phi, "audio").arms) and len(reader.read(phi, "audio").arms) >= 1
+    assert reader.read(phi, "image").arms == generator.read(phi, "image").arms
+    assert InstructionGenerator(generator.model).blank_penalty == {}
+
+
 def test_fusion_prefers_the_confident_modality():
     from vafn_media.decoding import fuse, greedy_decode
 

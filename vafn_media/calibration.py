@@ -48,12 +48,14 @@ class CalibrationSet:
         return float(np.mean([r is not None and tuple(r.arms) == y for r, y in zip(reads, self.labels)]))
 
 
-def readings_of(model, data, corrupted: bool, batch_size: int = 64) -> dict[str, list]:
+def readings_of(model, data, corrupted: bool, blank_penalty: dict | None = None,
+                batch_size: int = 64) -> dict[str, list]:
     """Greedy readings of every cached item per modality (``corrupted``: noisy audio + Cutout strips).
 
     :param model: the network.
     :param data: cached items (:class:`~vafn_media.dataset.TrainingData`).
     :param corrupted: use the noisy/Cutout copies instead of the clean ones.
+    :param blank_penalty: modality -> CTC blank penalty of the decoding (default: none).
     :param batch_size: batch size of the encoders.
     """
     import torch
@@ -68,8 +70,9 @@ def readings_of(model, data, corrupted: bool, batch_size: int = 64) -> dict[str,
             for modality in out:
                 phi, out_lengths = model.encode(modality, batch[modality], batch[f"{modality}_lengths"])
                 logits = model.decode(phi)
-                out[modality] += [greedy_decode(phi[b, : int(out_lengths[b])], logits[b, : int(out_lengths[b])])
-                                  for b in range(len(out_lengths))]
+                penalty = float((blank_penalty or {}).get(modality, 0.0))
+                out[modality] += [greedy_decode(phi[b, : int(out_lengths[b])], logits[b, : int(out_lengths[b])],
+                                                penalty) for b in range(len(out_lengths))]
     return out
 
 
@@ -89,16 +92,17 @@ def fit_platt(confidences: Sequence[float], correct: Sequence[bool]) -> tuple[fl
     return float(model.coef_[0, 0]), float(model.intercept_[0])
 
 
-def cached_sets(model, data) -> list[CalibrationSet]:
+def cached_sets(model, data, blank_penalty: dict | None = None) -> list[CalibrationSet]:
     """Calibration sets from the cached validation split: clean pairs, and noisy audio with Cutout images.
 
     :param model: the network.
     :param data: cached items (:class:`~vafn_media.dataset.TrainingData`).
+    :param blank_penalty: modality -> CTC blank penalty of the decoding (default: none).
     """
     labels = [tuple(data.arms[i, : data.lengths[i]].tolist()) for i in range(len(data))]
     sets = []
     for name, corrupted in (("validation clean", False), ("validation degraded + Cutout", True)):
-        reads = readings_of(model, data, corrupted)
+        reads = readings_of(model, data, corrupted, blank_penalty)
         sets.append(CalibrationSet(name, reads["audio"], reads["image"], labels))
     return sets
 
@@ -179,7 +183,7 @@ def calibrate_fusion(sets: Sequence[CalibrationSet], grid: Sequence[float] = IMA
 
 def calibrate_generator(generator, data) -> dict:
     """Calibrate the network of ``generator`` on the cached validation items ``data`` and the condition sets."""
-    return calibrate_fusion(cached_sets(generator.model, data) + condition_sets(generator))
+    return calibrate_fusion(cached_sets(generator.model, data, generator.blank_penalty) + condition_sets(generator))
 
 
 def training_validation_split(metadata: dict, cache_dir: Path):

@@ -36,12 +36,18 @@ def path_segments(best: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return starts, np.r_[starts[1:], len(best)]
 
 
-def greedy_decode(phi: torch.Tensor, logits: torch.Tensor) -> Decoded:
+def greedy_decode(phi: torch.Tensor, logits: torch.Tensor, blank_penalty: float = 0.0) -> Decoded:
     """Best-path CTC decoding of one sequence.
 
     :param phi: (T, LATENT_DIM) latent frames.
     :param logits: (T, VOCAB_SIZE) decoder logits of those frames.
+    :param blank_penalty: subtracted from the blank logit before decoding, so a token the frames half-hear is kept
+        rather than swallowed by the blank; the confidences and the log posteriors fusion rescores with are those of
+        the penalised logits.
     """
+    if blank_penalty:
+        logits = logits.clone()
+        logits[..., BLANK] -= blank_penalty
     log_probs = torch.log_softmax(logits, dim=-1)
     probs = log_probs.exp().numpy()
     best = probs.argmax(-1)

@@ -77,6 +77,8 @@ class InstructionGenerator:
         self.confidence_calibration: dict = {
             name: tuple(value) for name, value in self.metadata.get("confidence_calibration", {}).items()
         }
+        #: Per-modality CTC blank penalty of greedy decoding (chosen by ``benchmarks/blank_penalty.py``; default: 0).
+        self.blank_penalty: dict = dict(self.metadata.get("blank_penalty", {}))
         self._torch = torch
         from vafn_media.model import AudioInference
 
@@ -161,15 +163,16 @@ class InstructionGenerator:
             phi, _ = self.model.encode("image", tensor, torch.tensor([strip.shape[1]]))
         return phi[0]
 
-    def read(self, phi):
-        """Greedy CTC reading of Φ frames by the shared decoder.
+    def read(self, phi, modality: str):
+        """Greedy CTC reading of Φ frames by the shared decoder, with the modality's blank penalty.
 
         :param phi: (T, LATENT_DIM) latent frames.
+        :param modality: "audio" or "image": the encoder the frames came from.
         """
         from vafn_media.decoding import greedy_decode
 
         with self._torch.inference_mode():
-            return greedy_decode(phi, self.model.decode(phi))
+            return greedy_decode(phi, self.model.decode(phi), float(self.blank_penalty.get(modality, 0.0)))
 
     def read_audio(self, audio: AudioSource, sample_rate: int | None = None):
         """Greedy reading of validated audio (with silence added at an end that is in a sound) and the clip's quality
@@ -179,14 +182,14 @@ class InstructionGenerator:
         :param sample_rate: sample rate of a bare waveform.
         """
         clip = load_audio(audio, sample_rate)
-        return self.read(self.encode_audio(with_quiet_edges(clip), clip.sample_rate)), clip.warnings
+        return self.read(self.encode_audio(with_quiet_edges(clip), clip.sample_rate), "audio"), clip.warnings
 
     def read_image(self, image: ImageSource):
         """Greedy reading of an image of digits in a row; ValueError when it is unusable.
 
         :param image: as :meth:`transcribe`'s ``image``.
         """
-        return self.read(self.encode_strip(canonical_strip(image)))
+        return self.read(self.encode_strip(canonical_strip(image)), "image")
 
     # --- public API ---
     def transcribe(self, audio: AudioSource | None = None, image: ImageSource | None = None,

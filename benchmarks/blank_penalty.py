@@ -1,0 +1,145 @@
+"""Choose the audio path's CTC blank penalty: exact % per engine, condition and penalty on selection items.
+
+A reader trained on a few synthesisers swallows a short word of a voice it never heard into the blank (a fluent *two*
+between two other digits); lowering the blank logit keeps such words at the price of more insertions on voices it
+knows. The penalty is **chosen on the held-out voices of the engines the checkpoint trained on** (espeak-ng, and every
+installed engine whose ``--<engine>-probability`` was above 0), never on an engine it has never heard, so those stay an
+independent test: the grid value with the best mean over those engines of (clean + mean of the degraded conditions) / 2,
+an exact tie going to the smaller penalty. Items come from the selection seed, never the robustness table's.
+``--write`` stores the choice in the checkpoint's JSON (``blank_penalty``); recalibrate after it
+(``python -m vafn_media.calibration``), since the confidences change with the penalty.
+
+    OMP_NUM_THREADS=1 python benchmarks/blank_penalty.py --items 200 --out results/blank_penalty.md --write
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from vafn_media.evaluation import SELECTION_SEED  # noqa: E402
+
+#: Candidate penalties (logit units; 0 is plain greedy decoding).
+PENALTY_GRID: tuple[float, ...] = (0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 3.0)
+
+
+def parse_args() -> argparse.Namespace:
+    """Command-line options."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--items", type=int, default=200, help="instructions per engine (lengths 1-10)")
+    parser.add_argument("--checkpoint", default="packaged", help="checkpoint .pt (its .json beside it) or 'packaged'")
+    parser.add_argument("--engines", default=None,
+                        help="comma-separated engines to read (espeak and evaluation engines); default: all installed")
+    parser.add_argument("--write", action="store_true", help="store the chosen penalty in the checkpoint's JSON")
+    parser.add_argument("--out", type=Path, default=None, help="also write the markdown table here")
+    return parser.parse_args()
+
+
+def trained_engines(metadata: dict, engines: list[str]) -> list[str]:
+    """The engines of ``engines`` the checkpoint trained on (espeak-ng always; others when their share was above 0)."""
+    shares = metadata.get("args", {})
+    return [e for e in engines if e == "espeak" or float(shares.get(f"{e}_probability", 0)) > 0]
+
+
+def engine_score(exact: list[float]) -> float:
+    """(clean + mean of the degraded conditions) / 2 of one engine's per-condition exact % (clean first)."""
+    return (exact[0] + float(np.mean(exact[1:]))) / 2
+
+
+def choose_penalty(exact: dict[str, dict[float, list[float]]], engines: list[str]) -> float:
+    """The penalty with the best mean :func:`engine_score` over ``engines``; an exact tie goes to the smaller penalty.
+
+    :param exact: engine -> penalty -> exact % per condition (clean first).
+    :param engines: the engines the choice may look at.
+    """
+    if not engines:
+        raise ValueError("no engine to choose the blank penalty on")
+    penalties = sorted(next(iter(exact.values())))
+    return max(penalties, key=lambda p: (round(float(np.mean([engine_score(exact[e][p]) for e in engines])), 6), -p))
+
+
+def read_logits(generator, items: list, condition: str) -> list:
+    """Decoder logits of every item's clip under ``condition`` (None where the clip is rejected)."""
+    import torch
+
+    from vafn_media.audio import load_audio, with_quiet_edges
+    from vafn_media.evaluation import degraded_clip
+
+    out = []
+    for index, item in enumerate(items):
+        try:
+            clip = load_audio(degraded_clip(item, condition, SELECTION_SEED, index))
+        except ValueError:
+            out.append(None)
+            continue
+        phi = generator.encode_audio(with_quiet_edges(clip), clip.sample_rate)
+        with torch.inference_mode():
+            out.append((phi, generator.model.decode(phi)))
+    return out
+
+
+def exact_percent(logits: list, items: list, penalty: float) -> float:
+    """Exact-sequence % of greedy readings of cached ``logits`` under a blank penalty (a rejected clip is wrong)."""
+    from vafn_media.decoding import greedy_decode
+
+    return 100.0 * float(np.mean([pair is not None and tuple(greedy_decode(*pair, penalty).arms) == item.arms
+                                  for pair, item in zip(logits, items)]))
+
+
+def main() -> None:
+    """Sweep the grid on every engine, choose on the trained engines' held-out voices, print (and write) the table."""
+    import torch
+    from tqdm import tqdm
+
+    from vafn_media.augment import CONDITIONS
+    from vafn_media.engines import available_engines
+    from vafn_media.evaluation import checkpoint_by_name, speech_items
+
+    args = parse_args()
+    torch.set_num_threads(1)
+    generator, name = checkpoint_by_name(args.checkpoint)
+    engines = args.engines.split(",") if args.engines else ["espeak"] + available_engines()
+    exact: dict[str, dict[float, list[float]]] = {}
+    for engine in tqdm(engines, desc="engines", unit="engine"):
+        items = speech_items(engine, args.items, SELECTION_SEED)
+        logits = {condition: read_logits(generator, items, condition) for condition in CONDITIONS}
+        exact[engine] = {p: [exact_percent(logits[c], items, p) for c in CONDITIONS] for p in PENALTY_GRID}
+    chosen_on = trained_engines(generator.metadata, engines)
+    chosen = choose_penalty(exact, chosen_on)
+    never = [e for e in engines if e not in chosen_on]
+    lines = [f"Audio alone, exact sequence (%) by CTC blank penalty, checkpoint {name}, {args.items} instructions of "
+             f"lengths 1-10 per engine (selection seed {SELECTION_SEED}). Chosen on the held-out voices of "
+             f"{', '.join(chosen_on)}: **{chosen}** (score = (clean + mean of degraded) / 2).", "",
+             "| Penalty | " + " | ".join(f"{e} clean / degraded" for e in engines)
+             + " | trained engines' score | never-trained engines' score |",
+             "|---|" + "---|" * (len(engines) + 2)]
+    for p in PENALTY_GRID:
+        cells = " | ".join(f"{exact[e][p][0]:.1f} / {np.mean(exact[e][p][1:]):.1f}" for e in engines)
+        scores = [f"{np.mean([engine_score(exact[e][p]) for e in group]):.2f}" if group else "-"
+                  for group in (chosen_on, never)]
+        lines.append(f"| {'**' + str(p) + '**' if p == chosen else p} | {cells} | {' | '.join(scores)} |")
+    lines += ["", "Per condition (" + ", ".join(CONDITIONS) + "), plain greedy (0) -> chosen penalty:", ""]
+    lines += [f"- {e}: " + ", ".join(f"{a:.1f} -> {b:.1f}" for a, b in zip(exact[e][0.0], exact[e][chosen]))
+              for e in engines]
+    print("\n".join(lines))
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text("\n".join(lines) + "\n")
+    if args.write:
+        from vafn_media.generator import DEFAULT_CHECKPOINT
+
+        path = Path(DEFAULT_CHECKPOINT if args.checkpoint == "packaged" else args.checkpoint).with_suffix(".json")
+        metadata = json.loads(path.read_text())
+        metadata["blank_penalty"] = {**metadata.get("blank_penalty", {}), "audio": chosen}
+        path.write_text(json.dumps(metadata, indent=2))
+        print(f"wrote blank_penalty.audio = {chosen} to {path}; now run python -m vafn_media.calibration")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,30 @@
+"""The rule that chooses the audio path's blank penalty (benchmarks/blank_penalty.py)."""
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+_spec = importlib.util.spec_from_file_location(
+    "blank_penalty", Path(__file__).resolve().parents[1] / "benchmarks" / "blank_penalty.py")
+blank_penalty = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(blank_penalty)
+
+
+def test_only_engines_the_checkpoint_trained_on_choose():
+    metadata = {"args": {"mbrola_probability": 0.3, "pico_probability": 0.0}}
+    engines = ["espeak", "flite", "mbrola", "pico", "piper"]
+    assert blank_penalty.trained_engines(metadata, engines) == ["espeak", "mbrola"]
+    assert blank_penalty.trained_engines({}, engines) == ["espeak"]
+
+
+def test_choice_ignores_engines_it_may_not_look_at_and_breaks_ties_low():
+    exact = {
+        "espeak": {0.0: [100, 90, 90, 90, 90], 0.5: [100, 92, 92, 92, 92], 1.0: [100, 92, 92, 92, 92]},
+        "piper": {0.0: [70, 60, 60, 60, 60], 0.5: [75, 65, 65, 65, 65], 1.0: [90, 90, 90, 90, 90]},
+    }
+    assert blank_penalty.engine_score(exact["espeak"][0.5]) == 96.0
+    assert blank_penalty.choose_penalty(exact, ["espeak"]) == 0.5  # 0.5 and 1.0 tie: the smaller wins
+    assert blank_penalty.choose_penalty(exact, ["espeak", "piper"]) == 1.0
+    with pytest.raises(ValueError, match="no engine"):
+        blank_penalty.choose_penalty(exact, [])
