@@ -28,3 +28,26 @@ def test_choice_ignores_engines_it_may_not_look_at_and_breaks_ties_low():
     assert blank_penalty.choose_penalty(exact, ["espeak", "piper"]) == 1.0
     with pytest.raises(ValueError, match="no engine"):
         blank_penalty.choose_penalty(exact, [])
+
+
+def test_command_writes_its_choice_into_the_checkpoint(tmp_path, monkeypatch):
+    pytest.importorskip("espeakng_loader", reason="speech synthesis needs espeakng-loader ([media] extra)")
+    import json
+    import shutil
+    import sys
+
+    from vafn_media.generator import DEFAULT_CHECKPOINT
+
+    checkpoint = tmp_path / "instruction_model.pt"
+    shutil.copy(DEFAULT_CHECKPOINT, checkpoint)
+    metadata = json.loads(DEFAULT_CHECKPOINT.with_suffix(".json").read_text())
+    metadata.pop("blank_penalty", None)
+    checkpoint.with_suffix(".json").write_text(json.dumps(metadata))
+    out = tmp_path / "table.md"
+    monkeypatch.setattr(sys, "argv", ["blank_penalty.py", "--items", "4", "--engines", "espeak", "--checkpoint",
+                                      str(checkpoint), "--out", str(out), "--write"])
+    blank_penalty.main()
+    written = json.loads(checkpoint.with_suffix(".json").read_text())
+    assert written["blank_penalty"]["audio"] in blank_penalty.PENALTY_GRID
+    assert f"Chosen on the held-out voices of espeak: **{written['blank_penalty']['audio']}**" in out.read_text()
+    assert written["confidence_calibration"] == metadata["confidence_calibration"]  # the rest is kept
