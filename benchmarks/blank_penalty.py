@@ -84,12 +84,24 @@ def read_logits(generator, items: list, condition: str) -> list:
     return out
 
 
-def exact_percent(logits: list, items: list, penalty: float) -> float:
-    """Exact-sequence % of greedy readings of cached ``logits`` under a blank penalty (a rejected clip is wrong)."""
+def readings(logits: list, penalty: float) -> list[tuple[int, ...] | None]:
+    """Greedy readings of cached ``logits`` under a blank penalty (None where the clip was rejected)."""
     from vafn_media.decoding import greedy_decode
 
-    return 100.0 * float(np.mean([pair is not None and tuple(greedy_decode(*pair, penalty).arms) == item.arms
-                                  for pair, item in zip(logits, items)]))
+    return [None if pair is None else tuple(greedy_decode(*pair, penalty).arms) for pair in logits]
+
+
+def exact_percent(reads: list, items: list) -> float:
+    """Exact-sequence % of readings (a rejected clip is wrong)."""
+    return 100.0 * float(np.mean([read == item.arms for read, item in zip(reads, items)]))
+
+
+def dropped_inserted(reads: list, items: list) -> tuple[int, int]:
+    """Digits dropped and inserted over all readings (a rejected clip drops all its digits)."""
+    from vafn_media.evaluation import dropped_and_inserted
+
+    changes = [dropped_and_inserted(item.arms, read or ()) for read, item in zip(reads, items)]
+    return sum(len(lost) for lost, _ in changes), sum(len(added) for _, added in changes)
 
 
 def main() -> None:
@@ -106,10 +118,13 @@ def main() -> None:
     generator, name = checkpoint_by_name(args.checkpoint)
     engines = args.engines.split(",") if args.engines else ["espeak"] + available_engines()
     exact: dict[str, dict[float, list[float]]] = {}
+    clean_changes: dict[str, dict[float, tuple[int, int]]] = {}
     for engine in tqdm(engines, desc="engines", unit="engine"):
         items = speech_items(engine, args.items, SELECTION_SEED)
         logits = {condition: read_logits(generator, items, condition) for condition in CONDITIONS}
-        exact[engine] = {p: [exact_percent(logits[c], items, p) for c in CONDITIONS] for p in PENALTY_GRID}
+        reads = {(c, p): readings(logits[c], p) for c in CONDITIONS for p in PENALTY_GRID}
+        exact[engine] = {p: [exact_percent(reads[c, p], items) for c in CONDITIONS] for p in PENALTY_GRID}
+        clean_changes[engine] = {p: dropped_inserted(reads["clean", p], items) for p in PENALTY_GRID}
     chosen_on = trained_engines(generator.metadata, engines)
     chosen = choose_penalty(exact, chosen_on)
     never = [e for e in engines if e not in chosen_on]
@@ -126,6 +141,8 @@ def main() -> None:
         lines.append(f"| {'**' + str(p) + '**' if p == chosen else p} | {cells} | {' | '.join(scores)} |")
     lines += ["", "Per condition (" + ", ".join(CONDITIONS) + "), plain greedy (0) -> chosen penalty:", ""]
     lines += [f"- {e}: " + ", ".join(f"{a:.1f} -> {b:.1f}" for a, b in zip(exact[e][0.0], exact[e][chosen]))
+              + "; clean digits dropped / inserted {} / {} -> {} / {}".format(*clean_changes[e][0.0],
+                                                                            *clean_changes[e][chosen])
               for e in engines]
     print("\n".join(lines))
     if args.out is not None:

@@ -41,10 +41,9 @@ def parse_args() -> argparse.Namespace:
 
 def error_lines(transcribe: Callable[..., object], items: list, engine: str) -> list[str]:
     """Markdown lines: clean-speech exact % per phrasing and per voice, and the digits dropped / inserted."""
-    import difflib
     from collections import Counter, defaultdict
 
-    from vafn_media.evaluation import degraded_clip
+    from vafn_media.evaluation import degraded_clip, dropped_and_inserted
     from vafn_media.speech import phrase
 
     by_phrasing, by_voice = defaultdict(list), defaultdict(list)
@@ -56,11 +55,9 @@ def error_lines(transcribe: Callable[..., object], items: list, engine: str) -> 
             read = ()
         by_phrasing[item.template].append(read == item.arms)
         by_voice[item.voice.split("+")[0]].append(read == item.arms)
-        for operation, a0, a1, b0, b1 in difflib.SequenceMatcher(None, item.arms, read).get_opcodes():
-            if operation in ("delete", "replace"):
-                dropped.update(item.arms[a0:a1])
-            if operation in ("insert", "replace"):
-                inserted.update(read[b0:b1])
+        lost, added = dropped_and_inserted(item.arms, read)
+        dropped.update(lost)
+        inserted.update(added)
 
     def cells(groups: dict) -> str:
         return "; ".join(f"{name}: {100 * np.mean(hits):.0f} % of {len(hits)}" for name, hits in sorted(groups.items()))

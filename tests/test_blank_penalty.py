@@ -51,3 +51,17 @@ def test_command_writes_its_choice_into_the_checkpoint(tmp_path, monkeypatch):
     assert written["blank_penalty"]["audio"] in blank_penalty.PENALTY_GRID
     assert f"Chosen on the held-out voices of espeak: **{written['blank_penalty']['audio']}**" in out.read_text()
     assert written["confidence_calibration"] == metadata["confidence_calibration"]  # the rest is kept
+
+
+@pytest.mark.parametrize("reference, read, dropped, inserted, distance", [
+    ((1, 2, 3), (1, 2, 3), [], [], 0),
+    ((1, 2, 3, 1), (1, 3, 1), [2], [], 1),  # a swallowed word
+    ((2, 2, 2), (2, 2, 2, 2), [], [2], 1),
+    ((1, 2, 3), (1, 1, 3), [2], [1], 1),  # a swapped digit counts as both
+    ((3, 1), (), [3, 1], [], 2),
+])
+def test_dropped_and_inserted_digits(reference, read, dropped, inserted, distance):
+    from vafn_media.evaluation import dropped_and_inserted, edit_distance
+
+    assert dropped_and_inserted(reference, read) == (dropped, inserted)
+    assert edit_distance(reference, read) == distance

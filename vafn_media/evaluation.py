@@ -136,6 +136,25 @@ def edit_distance(a: tuple[int, ...], b: tuple[int, ...]) -> int:
     return row[-1]
 
 
+def dropped_and_inserted(reference: tuple[int, ...], read: tuple[int, ...]) -> tuple[list[int], list[int]]:
+    """The digits of ``reference`` a reading lost and the digits it added (a swapped digit counts as both), by
+    :mod:`difflib`'s alignment.
+
+    :param reference: true arm ids.
+    :param read: arm ids read.
+    """
+    import difflib
+
+    dropped: list[int] = []
+    inserted: list[int] = []
+    for operation, a0, a1, b0, b1 in difflib.SequenceMatcher(None, reference, read).get_opcodes():
+        if operation in ("delete", "replace"):
+            dropped += reference[a0:a1]
+        if operation in ("insert", "replace"):
+            inserted += read[b0:b1]
+    return dropped, inserted
+
+
 def checkpoint_by_name(checkpoint: str) -> tuple[InstructionGenerator, str]:
     """A generator and its column name for the checkpoint-comparison benchmarks: ``"packaged"`` or a ``.pt`` file
     (with its ``.json`` beside it), named by the folder of its training run.
