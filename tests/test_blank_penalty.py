@@ -42,6 +42,7 @@ def test_command_writes_its_choice_into_the_checkpoint(tmp_path, monkeypatch):
     shutil.copy(DEFAULT_CHECKPOINT, checkpoint)
     metadata = json.loads(DEFAULT_CHECKPOINT.with_suffix(".json").read_text())
     metadata.pop("blank_penalty", None)
+    metadata.pop("blank_probe", None)
     checkpoint.with_suffix(".json").write_text(json.dumps(metadata))
     out = tmp_path / "table.md"
     monkeypatch.setattr(sys, "argv", ["blank_penalty.py", "--items", "4", "--engines", "espeak", "--checkpoint",
@@ -50,6 +51,7 @@ def test_command_writes_its_choice_into_the_checkpoint(tmp_path, monkeypatch):
     written = json.loads(checkpoint.with_suffix(".json").read_text())
     assert written["blank_penalty"]["audio"] in blank_penalty.PENALTY_GRID
     assert f"Chosen on the held-out voices of espeak: **{written['blank_penalty']['audio']}**" in out.read_text()
+    assert written["blank_probe"].get("audio", 0.0) > written["blank_penalty"]["audio"] or "**None**" in out.read_text()
     assert written["confidence_calibration"] == metadata["confidence_calibration"]  # the rest is kept
 
 
@@ -65,3 +67,23 @@ def test_dropped_and_inserted_digits(reference, read, dropped, inserted, distanc
 
     assert dropped_and_inserted(reference, read) == (dropped, inserted)
     assert edit_distance(reference, read) == distance
+
+
+def test_probe_is_the_largest_penalty_within_the_flag_budget():
+    flagged = {"espeak": {0.75: 0.5, 1.0: 1.0, 2.0: 1.9, 3.0: 4.0}, "mbrola": {0.75: 0.0, 1.0: 0.5, 2.0: 2.0, 3.0: 3.0},
+               "piper": {0.75: 9.0, 1.0: 9.0, 2.0: 9.0, 3.0: 9.0}}
+    assert blank_penalty.choose_probe(flagged, ["espeak", "mbrola"], chosen=0.5, budget=2.0) == 2.0
+    assert blank_penalty.choose_probe(flagged, ["espeak", "mbrola"], chosen=0.5, budget=0.1) is None
+    assert blank_penalty.choose_probe(flagged, ["piper"], chosen=0.5, budget=2.0) is None
+    assert blank_penalty.choose_probe(flagged, ["espeak"], chosen=2.0, budget=5.0) == 3.0  # only above the penalty
+
+
+def test_probe_rates_count_right_flagged_and_wrong_caught():
+    class Item:
+        def __init__(self, arms):
+            self.arms = arms
+
+    items = [Item((1, 2)), Item((1, 2)), Item((3,)), Item((2,))]
+    chosen = [(1, 2), (1, 2), (1,), None]
+    probe = [(1, 2), (1, 2, 2), (1, 3), None]
+    assert blank_penalty.probe_rates(chosen, probe, items) == (50.0, 100.0)

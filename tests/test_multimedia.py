@@ -531,6 +531,44 @@ def test_generator_decodes_each_modality_with_its_blank_penalty(generator):
     assert InstructionGenerator(generator.model).blank_penalty == {}
 
 
+@pytest.mark.parametrize("penalty", [0.0, 0.5, 2.0, -1.0])
+def test_best_path_arms_is_the_greedy_reading(penalty):
+    from vafn_media.decoding import best_path_arms, greedy_decode
+
+    rng = torch.Generator().manual_seed(3)
+    for _ in range(20):
+        logits = torch.randn(30, VOCAB_SIZE, generator=rng) * 3
+        phi = torch.zeros(30, LATENT_DIM)
+        plain = greedy_decode(phi, logits)
+        assert best_path_arms(plain.log_probs, penalty) == greedy_decode(phi, logits, penalty).arms
+    assert best_path_arms(torch.zeros(0, VOCAB_SIZE), 1.0) == []
+
+
+def test_half_heard_check_flags_a_reading_that_a_larger_penalty_changes(generator):
+    from vafn_media.generator import InstructionGenerator
+
+    phi = torch.randn(40, LATENT_DIM)
+    reading = generator.read(phi, "audio")
+    huge = {"blank_probe": {"audio": 1e4}}  # every frame becomes a token: the reading must change
+    warning = InstructionGenerator(generator.model, huge).half_heard(reading, "audio")
+    assert len(warning) == 1 and "half-heard" in warning[0]
+    same = {"blank_penalty": dict(generator.blank_penalty), "blank_probe": dict(generator.blank_penalty)}
+    assert InstructionGenerator(generator.model, same).half_heard(reading, "audio") == []
+    assert InstructionGenerator(generator.model).half_heard(reading, "audio") == []
+    assert InstructionGenerator(generator.model, huge).half_heard(reading, "image") == []
+
+
+@needs_espeak
+def test_a_half_heard_reading_is_flagged(generator, sample):
+    from vafn_media.generator import InstructionGenerator
+
+    arms, wave, rate, image = sample
+    flagged = InstructionGenerator(generator.model, {**generator.metadata, "blank_probe": {"audio": 1e4}})
+    result = flagged.transcribe(audio=(wave, rate))
+    assert result.low_confidence and any("half-heard" in w for w in result.warnings)
+    assert result.arms == generator.transcribe(audio=(wave, rate)).arms  # the check flags, it never changes a reading
+
+
 def test_fusion_prefers_the_confident_modality():
     from vafn_media.decoding import fuse, greedy_decode
 

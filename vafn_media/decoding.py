@@ -73,6 +73,23 @@ def greedy_decode(phi: torch.Tensor, logits: torch.Tensor, blank_penalty: float 
     return Decoded(arms, confidences, peaks, stacked, float(best_prob.min()), log_probs)
 
 
+def best_path_arms(log_probs: torch.Tensor, blank_penalty: float = 0.0) -> list[int]:
+    """Arm ids of the best CTC path of ``log_probs`` with the blank's log-probability lowered by ``blank_penalty``.
+
+    Cheap (no confidences or embeddings): for checking whether a reading would change under a larger blank penalty.
+
+    :param log_probs: (T, VOCAB_SIZE) log posteriors (e.g. :attr:`Decoded.log_probs`).
+    :param blank_penalty: subtracted from the blank's log-probability of every frame.
+    """
+    scores = log_probs.numpy().copy()
+    if len(scores) == 0:
+        return []
+    scores[:, BLANK] -= blank_penalty
+    best = scores.argmax(-1)
+    starts, _ = path_segments(best)
+    return [int(best[start]) for start in starts if best[start] != BLANK]
+
+
 def sequence_log_likelihood(log_probs: torch.Tensor, arms: list[int]) -> float:
     """CTC log-likelihood log P(arms | frames) (-inf when the sequence cannot be aligned).
 

@@ -79,6 +79,9 @@ class InstructionGenerator:
         }
         #: Per-modality CTC blank penalty of greedy decoding (chosen by ``benchmarks/blank_penalty.py``; default: 0).
         self.blank_penalty: dict = dict(self.metadata.get("blank_penalty", {}))
+        #: Per-modality blank penalty of the half-heard check: a reading that changes when decoded with this larger
+        #: penalty is flagged (chosen by ``benchmarks/blank_penalty.py``; default: no check).
+        self.blank_probe: dict = dict(self.metadata.get("blank_probe", {}))
         self._torch = torch
         from vafn_media.model import AudioInference
 
@@ -175,14 +178,34 @@ class InstructionGenerator:
             return greedy_decode(phi, self.model.decode(phi), float(self.blank_penalty.get(modality, 0.0)))
 
     def read_audio(self, audio: AudioSource, sample_rate: int | None = None):
-        """Greedy reading of validated audio (with silence added at an end that is in a sound) and the clip's quality
-        warnings; ValueError when it is unusable.
+        """Greedy reading of validated audio (with silence added at an end that is in a sound) and its warnings (the
+        clip's quality, and :meth:`half_heard`); ValueError when it is unusable.
 
         :param audio: as :meth:`transcribe`'s ``audio``.
         :param sample_rate: sample rate of a bare waveform.
         """
         clip = load_audio(audio, sample_rate)
-        return self.read(self.encode_audio(with_quiet_edges(clip), clip.sample_rate), "audio"), clip.warnings
+        reading = self.read(self.encode_audio(with_quiet_edges(clip), clip.sample_rate), "audio")
+        return reading, list(clip.warnings) + self.half_heard(reading, "audio")
+
+    def half_heard(self, reading, modality: str) -> list[str]:
+        """A warning when the reading changes under the modality's probe blank penalty (a word the frames only
+        half-hear, kept or dropped depending on the penalty); none without a probe or when the reading is stable.
+
+        :param reading: the modality's greedy reading (its ``log_probs`` already carry the decoding penalty).
+        :param modality: "audio" or "image".
+        """
+        from vafn_media.decoding import best_path_arms
+
+        probe = self.blank_probe.get(modality)
+        if probe is None:
+            return []
+        extra = float(probe) - float(self.blank_penalty.get(modality, 0.0))
+        changed = best_path_arms(reading.log_probs, extra)
+        if changed == list(reading.arms):
+            return []
+        return [f"{modality} may have a half-heard word: with a larger blank penalty it reads {changed}, "
+                f"not {list(reading.arms)}"]
 
     def read_image(self, image: ImageSource):
         """Greedy reading of an image of digits in a row; ValueError when it is unusable.
