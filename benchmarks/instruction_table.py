@@ -159,9 +159,9 @@ def cross_modal_probe(generator, items: int, heldout_items) -> dict:
 
 
 def provenance(generator) -> str:
-    """The checkpoint's training command and how it decodes (the blank penalties from its metadata)."""
+    """The checkpoint's training command and how it decodes (its blank penalties and half-heard probes)."""
     return (f"{generator.metadata.get('command', 'unknown')}; CTC blank penalty "
-            f"{dict(generator.blank_penalty) or 'none'}")
+            f"{dict(generator.blank_penalty) or 'none'}, half-heard probe {dict(generator.blank_probe) or 'none'}")
 
 
 def engine_note(engine: str, voice: str, share: float) -> str:
