@@ -70,7 +70,7 @@ def choose_penalty(exact: dict[str, dict[float, list[float]]], engines: list[str
 
 
 def read_logits(generator, items: list, condition: str) -> list:
-    """Decoder logits of every item's clip under ``condition`` (None where the clip is rejected)."""
+    """(Φ frames, decoder logits) of every item's clip under ``condition`` (None where the clip is rejected)."""
     import torch
 
     from vafn_media.audio import load_audio, with_quiet_edges
