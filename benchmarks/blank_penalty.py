@@ -69,8 +69,8 @@ def choose_penalty(exact: dict[str, dict[float, list[float]]], engines: list[str
     return max(penalties, key=lambda p: (round(float(np.mean([engine_score(exact[e][p]) for e in engines])), 6), -p))
 
 
-def read_logits(generator, items: list, condition: str) -> list:
-    """(Φ frames, decoder logits) of every item's clip under ``condition`` (None where the clip is rejected)."""
+def read_log_probs(generator, items: list, condition: str) -> list:
+    """Decoder log posteriors of every item's clip under ``condition`` (None where the clip is rejected)."""
     import torch
 
     from vafn_media.audio import load_audio, with_quiet_edges
@@ -85,15 +85,15 @@ def read_logits(generator, items: list, condition: str) -> list:
             continue
         phi = generator.encode_audio(with_quiet_edges(clip), clip.sample_rate)
         with torch.inference_mode():
-            out.append((phi, generator.model.decode(phi)))
+            out.append(torch.log_softmax(generator.model.decode(phi), dim=-1))
     return out
 
 
-def readings(logits: list, penalty: float) -> list[tuple[int, ...] | None]:
-    """Greedy readings of cached ``logits`` under a blank penalty (None where the clip was rejected)."""
-    from vafn_media.decoding import greedy_decode
+def readings(log_probs: list, penalty: float) -> list[tuple[int, ...] | None]:
+    """Best-path readings of cached log posteriors under a blank penalty (None where the clip was rejected)."""
+    from vafn_media.decoding import best_path_arms
 
-    return [None if pair is None else tuple(greedy_decode(*pair, penalty).arms) for pair in logits]
+    return [None if frames is None else tuple(best_path_arms(frames, penalty)) for frames in log_probs]
 
 
 def exact_percent(reads: list, items: list) -> float:
@@ -152,8 +152,8 @@ def main() -> None:
     items_by_engine: dict[str, list] = {}
     for engine in tqdm(engines, desc="engines", unit="engine"):
         items = speech_items(engine, args.items, SELECTION_SEED)
-        logits = {condition: read_logits(generator, items, condition) for condition in CONDITIONS}
-        by_condition = {(c, p): readings(logits[c], p) for c in CONDITIONS for p in PENALTY_GRID}
+        log_probs = {condition: read_log_probs(generator, items, condition) for condition in CONDITIONS}
+        by_condition = {(c, p): readings(log_probs[c], p) for c in CONDITIONS for p in PENALTY_GRID}
         exact[engine] = {p: [exact_percent(by_condition[c, p], items) for c in CONDITIONS] for p in PENALTY_GRID}
         clean_changes[engine] = {p: dropped_inserted(by_condition["clean", p], items) for p in PENALTY_GRID}
         reads[engine] = {p: [r for c in CONDITIONS for r in by_condition[c, p]] for p in PENALTY_GRID}
