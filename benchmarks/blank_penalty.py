@@ -73,7 +73,7 @@ def read_log_probs(generator, items: list, condition: str) -> list:
     """Decoder log posteriors of every item's clip under ``condition`` (None where the clip is rejected)."""
     import torch
 
-    from vafn_media.audio import load_audio, with_quiet_edges
+    from vafn_media.audio import load_audio
     from vafn_media.evaluation import degraded_clip
 
     out = []
@@ -83,7 +83,7 @@ def read_log_probs(generator, items: list, condition: str) -> list:
         except ValueError:
             out.append(None)
             continue
-        phi = generator.encode_audio(with_quiet_edges(clip), clip.sample_rate)
+        phi = generator.encode_clip(clip)
         with torch.inference_mode():
             out.append(torch.log_softmax(generator.model.decode(phi), dim=-1))
     return out

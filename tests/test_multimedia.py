@@ -1012,6 +1012,13 @@ def test_a_clip_that_starts_or_ends_in_a_sound_is_read_with_silence_added_there(
     padded = with_quiet_edges(trimmed)
     added = int(round(EDGE_PAD_SECONDS * trimmed.sample_rate))
     assert len(padded) == len(trimmed.waveform) + added * sum(trimmed.sounding_edges) and not padded[:added].any()
+    # encode_clip (what benchmarks read) gives the frames of the padded clip, and read_audio reads exactly those
+    phi = generator.encode_clip(trimmed)
+    assert torch.equal(phi, generator.encode_audio(padded, trimmed.sample_rate))
+    assert not torch.equal(phi, generator.encode_audio(trimmed.waveform, trimmed.sample_rate))
+    reading, _ = generator.read_audio((trim_silence(waveform), rate))
+    direct = generator.read(phi, "audio")
+    assert reading.arms == direct.arms and torch.equal(reading.log_probs, direct.log_probs)
 
 needs_recordings = pytest.mark.skipif(
     not all((Path("/usr/share/asterisk/sounds/en_US_f_Allison") / name).is_file()

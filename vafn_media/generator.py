@@ -185,8 +185,16 @@ class InstructionGenerator:
         :param sample_rate: sample rate of a bare waveform.
         """
         clip = load_audio(audio, sample_rate)
-        reading = self.read(self.encode_audio(with_quiet_edges(clip), clip.sample_rate), "audio")
+        reading = self.read(self.encode_clip(clip), "audio")
         return reading, list(clip.warnings) + self.half_heard(reading, "audio")
+
+    def encode_clip(self, clip):
+        """Φ frames of a validated clip (from :func:`load_audio`) as :meth:`read_audio` reads it: with silence added at
+        an end that is in a sound.
+
+        :param clip: a validated clip.
+        """
+        return self.encode_audio(with_quiet_edges(clip), clip.sample_rate)
 
     def half_heard(self, reading, modality: str) -> list[str]:
         """A warning when the reading changes under the modality's probe blank penalty (a word the frames only
