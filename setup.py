@@ -10,7 +10,11 @@ EXTRAS = {
     "media": [
         "librosa>=0.10", "soundfile>=0.12", "opencv-python-headless>=4.8", "scikit-learn>=1.3", "soxr>=0.3",
         "scipy>=1.10", "pillow>=9", "espeakng-loader>=0.2", "mlxtend>=0.23",
+        # Voice-activity detection for live commands (vafn_media.listen): torch only, its model ships in the wheel.
+        "silero-vad>=5.1",
     ],
+    # A microphone for live commands (vafn-demo --listen); also needs Debian's libportaudio2.
+    "live": ["sounddevice>=0.4"],
     # optuna >= 4: the journal-file storage (the tuning default); psycopg2-binary: PostgreSQL studies (docs/tuning.md).
     "zoo": [
         "rl_zoo3>=2.3", "optuna>=4.0,<6", "tensorboard>=2.14", "matplotlib>=3.7", "pandas>=2.0", "scipy>=1.10",
