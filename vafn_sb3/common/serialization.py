@@ -9,6 +9,9 @@
   JSON-safe hyperparameters) and ``policy.pt`` / ``variables.pt`` (plain tensor dicts, read with
   ``torch.load(weights_only=True)``). Optimiser states and non-JSON hyperparameters (schedules other than constants,
   action-noise objects, buffer classes) are not stored; they take their defaults on load.
+- Limits before work: :func:`load_weights` reads entry sizes from the zip directory and checks every size the config
+  gives (layers, critics, buffers, spaces; :data:`MAX_LAYER_WIDTH` and the other bounds below) before it inflates an
+  entry or builds a network, and refuses weights that are not finite.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import enum
 import inspect
 import io
 import json
+import math
 import os
 import zipfile
 import zlib
@@ -48,6 +52,25 @@ _NOT_HYPERPARAMETERS = frozenset(
 )
 #: Box dtypes a weights file may declare.
 _SPACE_DTYPES = ("float32", "float64")
+#: Largest model file (bytes), checked before the zip is opened.
+MAX_MODEL_FILE_BYTES = 128 * 2**20
+#: Most entries a model zip may list.
+MAX_ZIP_ENTRIES = 64
+#: Largest uncompressed JSON entry (a weights file's ``config.json``, an SB3 zip's ``data``), from the zip directory.
+MAX_JSON_ENTRY_BYTES = 4 * 2**20
+#: Largest uncompressed tensor entry of a weights file (``policy.pt``, ``variables.pt``), from the zip directory.
+MAX_TENSOR_ENTRY_BYTES = 16 * 2**20
+#: Bounds of the sizes a weights config gives, checked before anything is allocated: units in a layer, layers in a
+#: network (items in any ``policy_kwargs`` list), critics, attention heads, elements of a Box space.
+MAX_LAYER_WIDTH = 4096
+MAX_LAYERS = 16
+MAX_CRITICS = 16
+MAX_ATTENTION_HEADS = 64
+MAX_SPACE_SIZE = 4096
+#: Largest value of the hyperparameters that size a buffer allocated when the model is built.
+MAX_HYPERPARAMETERS = {"buffer_size": 10**7, "query_buffer_size": 10**7, "n_steps": 10**6, "batch_size": 10**6}
+#: Largest buffer (bytes of float32 observations, next observations and actions) those hyperparameters may ask for.
+MAX_BUFFER_BYTES = 2 * 2**30
 
 
 class _ClassKwarg:
@@ -104,9 +127,42 @@ def check_model_zip(path: str | os.PathLike[str] | io.BufferedIOBase) -> None:
         _check_zip_entries(file, str(file), ("data", "policy.pth"))
 
 
-def _check_zip_entries(file: Path | io.BufferedIOBase, name: str, required: tuple[str, ...]) -> list[str]:
+def entry_limit(entry: str) -> int:
+    """Largest uncompressed size (bytes) a model zip's ``entry`` may declare in the zip directory."""
+    if entry in (CONFIG_ENTRY, "data"):
+        return MAX_JSON_ENTRY_BYTES
+    if entry in (POLICY_ENTRY, VARIABLES_ENTRY):
+        return MAX_TENSOR_ENTRY_BYTES
+    return MAX_MODEL_FILE_BYTES
+
+
+def check_zip_directory(archive: zipfile.ZipFile, name: str) -> None:
+    """``ValueError`` naming the file when its zip directory lists too many entries or one too large to inflate."""
+    entries = archive.infolist()
+    if len(entries) > MAX_ZIP_ENTRIES:
+        raise ValueError(f"{name} lists {len(entries)} zip entries; a model file has at most {MAX_ZIP_ENTRIES}")
+    for info in entries:
+        if info.file_size > entry_limit(info.filename):
+            raise ValueError(f"{name}: entry {info.filename!r} inflates to {info.file_size:,} bytes; at most "
+                             f"{entry_limit(info.filename):,} are read (refused without inflating it)")
+
+
+def check_file_size(path: Path, name: str) -> None:
+    """``ValueError`` naming the file when it is larger than :data:`MAX_MODEL_FILE_BYTES`."""
+    size = path.stat().st_size if path.is_file() else 0
+    if size > MAX_MODEL_FILE_BYTES:
+        raise ValueError(f"{name} is {size:,} bytes; a model file has at most {MAX_MODEL_FILE_BYTES:,}")
+
+
+def _check_zip_entries(file: Path | io.BufferedIOBase, name: str, required: tuple[str, ...],
+                       bounded: bool = False) -> list[str]:
+    """The zip's entry names after checking it is readable, complete and (``bounded``) within the size limits."""
+    if bounded and isinstance(file, Path):
+        check_file_size(file, name)
     try:
         with zipfile.ZipFile(file) as archive:
+            if bounded:
+                check_zip_directory(archive, name)
             entries = archive.namelist()
             corrupt = archive.testzip()
     except (zipfile.BadZipFile, zlib.error, EOFError) as error:
@@ -254,13 +310,15 @@ def _encode_space(space: spaces.Space) -> dict[str, Any]:
 
 def _decode_space(encoded: Any) -> spaces.Box:
     if not isinstance(encoded, dict) or encoded.get("type") != "Box" or encoded.get("dtype") not in _SPACE_DTYPES:
-        raise ValueError(f"expected a float Box space description, got {encoded!r}")
+        raise ValueError(f"expected a float Box space description, got {str(encoded)[:200]}")
     try:
         shape = tuple(int(size) for size in encoded["shape"])
+        if len(shape) > MAX_LAYERS or min(shape, default=1) < 0 or math.prod(shape) > MAX_SPACE_SIZE:
+            raise ValueError(f"a Box of shape {shape} is outside the bounds (at most {MAX_SPACE_SIZE} elements)")
         low = np.asarray(encoded["low"], dtype=encoded["dtype"]).reshape(shape)
         high = np.asarray(encoded["high"], dtype=encoded["dtype"]).reshape(shape)
     except (KeyError, TypeError, ValueError) as error:
-        raise ValueError(f"malformed Box space description {encoded!r}: {error}") from error
+        raise ValueError(f"malformed Box space description {str(encoded)[:200]}: {error}") from error
     return spaces.Box(low=low, high=high, shape=shape, dtype=encoded["dtype"])
 
 
@@ -326,7 +384,91 @@ def _read_tensors(archive: zipfile.ZipFile, entry: str, name: str, device: th.de
         isinstance(key, str) and isinstance(value, th.Tensor) for key, value in tensors.items()
     ):
         raise ValueError(f"{name}: {entry} must hold a dict of named tensors")
+    check_finite(tensors, f"{name}: {entry}")
     return tensors
+
+
+def check_finite(tensors: dict[str, th.Tensor], where: str) -> None:
+    """``ValueError`` naming ``where`` and the tensor when a floating-point tensor holds NaN or infinite values."""
+    for key, tensor in tensors.items():
+        if tensor.is_floating_point() and not bool(th.isfinite(tensor).all()):
+            raise ValueError(f"{where}: {key} holds NaN or infinite values (refused: a model must have finite weights)")
+
+
+def _size_errors(value: Any, where: str) -> list[str]:
+    """Sizes in a ``policy_kwargs`` value outside the bounds: lists longer than MAX_LAYERS, integers outside
+    [0, MAX_LAYER_WIDTH] (layer widths at least 1)."""
+    if isinstance(value, dict):
+        return [error for key, item in value.items() for error in _size_errors(item, f"{where}[{key!r}]")]
+    if isinstance(value, list):
+        head = [f"{where} has {len(value)} items (at most {MAX_LAYERS})"] if len(value) > MAX_LAYERS else []
+        return head + [error for i, item in enumerate(value[:MAX_LAYERS]) for error in _size_errors(item, where)]
+    low = 1 if "net_arch" in where else 0
+    if isinstance(value, int) and not isinstance(value, bool) and not low <= value <= MAX_LAYER_WIDTH:
+        return [f"{where} = {value} is outside [{low}, {MAX_LAYER_WIDTH}]"]
+    return []
+
+
+def _count_errors(mapping: dict[str, Any], bounds: dict[str, int], where: str) -> list[str]:
+    """Counts in ``mapping`` that are not numbers in [1, bound]."""
+    errors = []
+    for key, bound in bounds.items():
+        value = mapping.get(key)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                  or not 1 <= value <= bound):
+            errors.append(f"{where}[{key!r}] = {str(value)[:40]} is outside [1, {bound:,}]")
+    return errors
+
+
+def _hidden_parameters(policy_kwargs: dict[str, Any]) -> int:
+    """A lower bound on the policy's parameters from its ``net_arch``: the weights between consecutive hidden layers,
+    the ``qf`` network's once per critic."""
+    arch = policy_kwargs.get("net_arch")
+    nets = arch.items() if isinstance(arch, dict) else [("", arch)]
+    critics = policy_kwargs.get("n_critics", 1)
+    total = 0
+    for key, net in nets:
+        widths = [width for width in net if isinstance(width, int)] if isinstance(net, list) else []
+        total += sum(a * b for a, b in zip(widths, widths[1:])) * (critics if key == "qf" else 1)
+    return total
+
+
+def _space_size(encoded: Any) -> int:
+    """Elements of a stored Box space (0 when the description is malformed: :func:`_decode_space` says why)."""
+    shape = encoded.get("shape") if isinstance(encoded, dict) else None
+    if not isinstance(shape, list) or not all(isinstance(size, int) and size >= 0 for size in shape):
+        return 0
+    return math.prod(shape[:MAX_LAYERS])
+
+
+def _buffer_errors(config: dict[str, Any]) -> list[str]:
+    """Buffers the hyperparameters size larger than :data:`MAX_BUFFER_BYTES` for the stored spaces."""
+    per_item = 4 * (2 * _space_size(config.get("observation_space")) + _space_size(config.get("action_space")))
+    hyperparameters = config.get("hyperparameters", {})
+    return [f"hyperparameters[{key!r}] = {hyperparameters[key]:,} asks for a {hyperparameters[key] * per_item:,}-byte "
+            f"buffer (at most {MAX_BUFFER_BYTES:,})" for key in ("buffer_size", "query_buffer_size", "n_steps")
+            if hyperparameters.get(key, 0) * per_item > MAX_BUFFER_BYTES]
+
+
+def check_config_bounds(config: dict[str, Any], name: str, policy_bytes: int) -> None:
+    """``ValueError`` naming the file when a size in a weights config is outside the documented bounds, or when its
+    networks need more weights than its ``policy.pt`` (``policy_bytes`` uncompressed) can hold; nothing is allocated.
+    """
+    policy_kwargs = config.get("policy_kwargs", {})
+    hyperparameters = config.get("hyperparameters", {})
+    if not isinstance(policy_kwargs, dict) or not isinstance(hyperparameters, dict):
+        raise ValueError(f"{name}: policy_kwargs and hyperparameters must be JSON objects")
+    errors = _size_errors(policy_kwargs, "policy_kwargs")
+    errors += _count_errors(policy_kwargs, {"n_critics": MAX_CRITICS, "attend_heads": MAX_ATTENTION_HEADS},
+                            "policy_kwargs")
+    errors += _count_errors(hyperparameters, MAX_HYPERPARAMETERS, "hyperparameters")
+    errors = errors or _buffer_errors(config)
+    if errors:
+        raise ValueError(f"{name}: {'; '.join(errors[:3])} (refused before building the model)")
+    needed = 4 * _hidden_parameters(policy_kwargs)
+    if needed > policy_bytes:
+        raise ValueError(f"{name}: its net_arch needs at least {needed:,} bytes of weights, its {POLICY_ENTRY} holds "
+                         f"{policy_bytes:,} (refused before building the model)")
 
 
 def _read_config(archive: zipfile.ZipFile, name: str) -> dict[str, Any]:
@@ -350,12 +492,13 @@ def load_weights(path: str | os.PathLike[str], env: Any = None, device: th.devic
     :return: the model, with its policy weights and pytorch variables (entropy coefficient, ...) loaded.
     """
     name = str(path)
-    entries = _check_zip_entries(Path(path), name, ())
+    entries = _check_zip_entries(Path(path), name, (), bounded=True)
     if CONFIG_ENTRY not in entries or POLICY_ENTRY not in entries:
         hint = " (an SB3 model zip: load it with the algorithm's load, trusted files only)" if "data" in entries else ""
         raise ValueError(f"{name} is not a weights file: it needs {CONFIG_ENTRY} and {POLICY_ENTRY}{hint}")
     with zipfile.ZipFile(path) as archive:
         config = _read_config(archive, name)
+        check_config_bounds(config, name, archive.getinfo(POLICY_ENTRY).file_size)
         policy_state = _read_tensors(archive, POLICY_ENTRY, name, device)
         variables = _read_tensors(archive, VARIABLES_ENTRY, name, device) if VARIABLES_ENTRY in entries else {}
 
