@@ -92,18 +92,19 @@ def fit_platt(confidences: Sequence[float], correct: Sequence[bool]) -> tuple[fl
     return float(model.coef_[0, 0]), float(model.intercept_[0])
 
 
-def cached_sets(model, data, blank_penalty: dict | None = None) -> list[CalibrationSet]:
-    """Calibration sets from the cached validation split: clean pairs, and noisy audio with Cutout images.
+def cached_sets(model, data, blank_penalty: dict | None = None, name: str = "validation") -> list[CalibrationSet]:
+    """Calibration sets from cached validation items: clean pairs, and noisy audio with Cutout images.
 
     :param model: the network.
     :param data: cached items (:class:`~vafn_media.dataset.TrainingData`).
     :param blank_penalty: modality -> CTC blank penalty of the decoding (default: none).
+    :param name: what the items are (the sets are "<name> clean" and "<name> degraded + Cutout").
     """
     labels = [tuple(data.arms[i, : data.lengths[i]].tolist()) for i in range(len(data))]
     sets = []
-    for name, corrupted in (("validation clean", False), ("validation degraded + Cutout", True)):
+    for condition, corrupted in (("clean", False), ("degraded + Cutout", True)):
         reads = readings_of(model, data, corrupted, blank_penalty)
-        sets.append(CalibrationSet(name, reads["audio"], reads["image"], labels))
+        sets.append(CalibrationSet(f"{name} {condition}", reads["audio"], reads["image"], labels))
     return sets
 
 
@@ -181,9 +182,13 @@ def calibrate_fusion(sets: Sequence[CalibrationSet], grid: Sequence[float] = IMA
     }
 
 
-def calibrate_generator(generator, data) -> dict:
-    """Calibrate the network of ``generator`` on the cached validation items ``data`` and the condition sets."""
-    return calibrate_fusion(cached_sets(generator.model, data, generator.blank_penalty) + condition_sets(generator))
+def calibrate_generator(generator, data, people=None) -> dict:
+    """Calibrate the network of ``generator`` on the cached validation items ``data``, the condition sets and, when
+    given, the cached items of real people's *selection* speakers and glyphs (:mod:`vafn_media.people`)."""
+    sets = cached_sets(generator.model, data, generator.blank_penalty) + condition_sets(generator)
+    if people is not None:
+        sets += cached_sets(generator.model, people, generator.blank_penalty, "people selection")
+    return calibrate_fusion(sets)
 
 
 def training_validation_split(metadata: dict, cache_dir: Path):

@@ -272,6 +272,14 @@ class TrainingData:
         return self.augmented_audio[0]
 
     @classmethod
+    def concatenate(cls, parts: Sequence[TrainingData]) -> TrainingData:
+        """The items of ``parts``, in order, as one set."""
+        return cls(np.concatenate([p.arms for p in parts]), np.concatenate([p.lengths for p in parts]),
+                   [a for p in parts for a in p.clean_audio],
+                   [[a for p in parts for a in p.augmented_audio[k]] for k in range(AUGMENTED_COPIES)],
+                   [s for p in parts for s in p.clean], [s for p in parts for s in p.masked])
+
+    @classmethod
     def load(cls, paths: Sequence[str]) -> TrainingData:
         """Concatenate cached shard files.
 

@@ -199,6 +199,17 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--tempo-probability", type=float, default=0.3,
                         help="chance that a degraded training copy is said at another rate with its pitch kept (a "
                              f"phase-vocoder tempo change to a rate in {TEMPO_RATE_RANGE}x)")
+    parser.add_argument("--people-speech", type=Path, default=None,
+                        help="a local copy of real people's recorded words (<dir>/one, two, three/<speaker>_nohash_<n>"
+                             ".wav, e.g. Google Speech Commands): instructions said by its training speakers are added "
+                             "to the training items, its selection speakers validate and calibrate (vafn_media.people)")
+    parser.add_argument("--people-handwriting", type=Path, default=None,
+                        help="folder with MNIST's training files (train-images-idx3-ubyte[.gz], train-labels-idx1-"
+                             "ubyte[.gz]): the real people's items are written with its handwriting (needs "
+                             "--people-speech)")
+    parser.add_argument("--people-items", type=int, default=4000, help="real people's training items")
+    parser.add_argument("--people-val-items", type=int, default=300,
+                        help="real people's selection items (validation and calibration)")
     parser.add_argument("--train-only", choices=("all", *MODALITIES), default="all",
                         help="'image' or 'audio': update only that modality's encoder and adapter; the other path, "
                              "the shared projection and the decoder stay frozen, so the other modality's readings "
@@ -234,6 +245,8 @@ def main(argv=None) -> dict:
     for name in ("camera_compound", "camera_mnist"):
         if getattr(args, f"{name}_probability") > 0 and args.camera_probability == 0:
             raise SystemExit(f"--{name.replace('_', '-')}-probability needs camera photos (--camera-probability > 0)")
+    if (args.people_speech is None) != (args.people_handwriting is None):
+        raise SystemExit("--people-speech and --people-handwriting go together (real voices and real handwriting)")
     if args.camera_mnist_probability > 0:
         from vafn_media.strips import mnist_pool
 
@@ -257,6 +270,21 @@ def main(argv=None) -> dict:
             data.clean, data.masked = strips["clean"], strips["masked"]
             if split == "train":
                 camera = strips["camera"]
+    people = None
+    if args.people_speech is not None:
+        from vafn_media.dataset import TrainingData
+        from vafn_media.people import people_training_data
+
+        try:
+            people = {split: people_training_data(args.people_speech, args.people_handwriting, split, count, args.seed,
+                                                  cache)
+                      for split, count in (("train", args.people_items), ("selection", args.people_val_items))}
+        except ValueError as error:
+            raise SystemExit(str(error)) from error
+        if camera is not None:  # real people's items are read from their own handwriting strips, never from photos
+            camera = [list(copy) + list(people["train"].clean) for copy in camera]
+        train = TrainingData.concatenate([train, people["train"]])
+        validation["people"] = people["selection"]
     data_seconds = time.time() - started
 
     config = ModelConfig()
@@ -323,8 +351,10 @@ def main(argv=None) -> dict:
         "args": {
             k: str(v) if isinstance(v, Path) else v
             for k, v in vars(args).items()
-            if k not in ("out", "logdir", "cache_dir", "init")
+            if k not in ("out", "logdir", "cache_dir", "init", "people_speech", "people_handwriting")
         },
+        "people": None if people is None else {
+            "speech": args.people_speech.name, "handwriting": args.people_handwriting.name},
         "init": None if args.init is None else str(args.init.name),
         "data_seconds": round(data_seconds, 1),
         "total_seconds": round(time.time() - started, 1),
@@ -332,7 +362,8 @@ def main(argv=None) -> dict:
         "torch": torch.__version__,
         "validation": history,
     }
-    metadata.update(calibrate_generator(InstructionGenerator(model, metadata), validation["test"]))
+    metadata.update(calibrate_generator(InstructionGenerator(model, metadata), validation["test"],
+                                        None if people is None else people["selection"]))
     metadata["total_seconds"] = round(time.time() - started, 1)
     metadata["cpu_seconds"] = round(_cpu_seconds(), 1)
     atomic_write(args.out / f"{CHECKPOINT_NAME}.json", lambda tmp: tmp.write_text(json.dumps(metadata, indent=2)))

@@ -1,0 +1,131 @@
+"""Real people's corpora (vafn_media.people): speaker splits, spoken instructions, MNIST glyphs, training items."""
+
+from __future__ import annotations
+
+import gzip
+import wave
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vafn_media.people import (GLYPH_SPLITS, WORDS, SpokenWords, handwriting_strip, handwritten_glyphs,
+                               people_training_data, say_instruction, speaker_split, word_span)
+
+RATE = 16_000
+
+
+def _write_wav(path: Path, samples: np.ndarray, rate: int = RATE) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with wave.open(str(path), "wb") as handle:
+        handle.setnchannels(1)
+        handle.setsampwidth(2)
+        handle.setframerate(rate)
+        handle.writeframes((np.clip(samples, -1, 1) * 32767).astype(np.int16).tobytes())
+
+
+def _word(arm: int, rng: np.random.Generator) -> np.ndarray:
+    """One second: silence, a tone burst whose pitch names the arm, silence (a stand-in for a recorded word)."""
+    t = np.arange(int(0.3 * RATE)) / RATE
+    burst = 0.5 * np.sin(2 * np.pi * 200 * arm * t) * np.hanning(len(t))
+    quiet = rng.normal(0, 1e-4, RATE).astype(np.float32)
+    quiet[RATE // 3: RATE // 3 + len(t)] += burst
+    return quiet
+
+
+def _speakers(split: str, count: int) -> list[str]:
+    found, k = [], 0
+    while len(found) < count:
+        name = f"{k:08x}"
+        if speaker_split(name) == split:
+            found.append(name)
+        k += 1
+    return found
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("words")
+    rng = np.random.default_rng(0)
+    for split in ("train", "selection", "test"):
+        for speaker in _speakers(split, 3):
+            for arm, word in WORDS.items():
+                _write_wav(root / word / f"{speaker}_nohash_0.wav", _word(arm, rng))
+    return root
+
+
+@pytest.fixture(scope="module")
+def mnist(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("mnist")
+    count = GLYPH_SPLITS["test"][1]
+    labels = (np.arange(count) % 4).astype(np.uint8)  # 0 (never an arm), 1, 2, 3
+    images = np.zeros((count, 28, 28), np.uint8)
+    images[:, 6:22, 12:16] = 255  # a vertical bar
+    header = (2051).to_bytes(4, "big") + b"".join(n.to_bytes(4, "big") for n in (count, 28, 28))
+    with gzip.open(root / "train-images-idx3-ubyte.gz", "wb") as handle:
+        handle.write(header + images.tobytes())
+    (root / "train-labels-idx1-ubyte").write_bytes((2049).to_bytes(4, "big") + count.to_bytes(4, "big")
+                                                   + labels.tobytes())
+    return root
+
+
+def test_speaker_split_is_stable_and_covers_every_split():
+    names = [f"{k:08x}" for k in range(2000)]
+    splits = [speaker_split(n) for n in names]
+    assert splits == [speaker_split(n) for n in names]
+    shares = {s: splits.count(s) / len(names) for s in ("train", "selection", "test")}
+    assert 0.6 < shares["train"] < 0.8 and 0.05 < shares["selection"] < 0.15 and 0.15 < shares["test"] < 0.25
+
+
+def test_spoken_words_keep_only_their_split(corpus):
+    for split in ("train", "selection", "test"):
+        words = SpokenWords.read(corpus, split)
+        assert words.complete_speakers() == sorted(words.speakers)
+        assert all(speaker_split(s) == split for s in words.speakers) and words.clips() == 9
+
+
+def test_spoken_words_reject_a_folder_that_is_not_a_corpus(tmp_path):
+    with pytest.raises(ValueError, match="no folder one, two, three"):
+        SpokenWords.read(tmp_path, "train")
+    with pytest.raises(ValueError, match="unknown split"):
+        SpokenWords.read(tmp_path, "validation")
+
+
+def test_said_instruction_has_one_burst_per_word(corpus):
+    words = SpokenWords.read(corpus, "train")
+    waveform, speaker = say_instruction(words, (2, 3, 1, 3), np.random.default_rng(1))
+    assert speaker in words.speakers
+    frames = np.abs(waveform[: len(waveform) // 160 * 160]).reshape(-1, 160).max(axis=1)
+    loud = np.concatenate([[0], (frames > 0.05).astype(int)])
+    assert np.count_nonzero(np.diff(loud) == 1) == 4  # four separate bursts
+    with pytest.raises(ValueError, match="not in the train split"):
+        say_instruction(words, (1,), np.random.default_rng(1), speaker="nobody")
+
+
+def test_word_span_cuts_the_silence_around_a_word():
+    word = _word(2, np.random.default_rng(0))
+    span = word_span(word, RATE)
+    assert 0.3 <= (span.stop - span.start) / RATE <= 0.45 and span.start > 0.2 * RATE
+
+
+def test_handwritten_glyphs_by_index_split(mnist, tmp_path):
+    pools = {split: handwritten_glyphs(str(mnist), split) for split in GLYPH_SPLITS}
+    for split, (start, stop) in GLYPH_SPLITS.items():
+        assert sum(len(g) for g in pools[split].values()) == 3 * (stop - start) // 4
+    strip = handwriting_strip(pools["test"], (1, 2, 3), np.random.default_rng(0))
+    assert strip.dtype == np.uint8 and strip.shape[1] > strip.shape[0]
+    assert strip.mean() > 128  # dark ink on light paper
+    (tmp_path / "train-images-idx3-ubyte").write_bytes(b"<html>not mnist</html>")
+    (tmp_path / "train-labels-idx1-ubyte").write_bytes(b"<html>not mnist</html>")
+    with pytest.raises(ValueError, match="not an MNIST idx file"):
+        handwritten_glyphs(str(tmp_path), "train")
+
+
+def test_people_training_items_are_cached_and_never_from_the_test_split(corpus, mnist, tmp_path):
+    data = people_training_data(corpus, mnist, "train", 12, seed=0, cache_dir=tmp_path, progress=False)
+    assert len(data) == 12 and len(data.augmented_audio) == 2 and len(data.clean) == 12
+    assert all(f.shape[0] == 40 for f in data.clean_audio)
+    again = people_training_data(corpus, mnist, "train", 12, seed=0, cache_dir=tmp_path, progress=False)
+    assert np.array_equal(data.arms, again.arms) and len(list(tmp_path.glob("*.npz"))) == 1
+    with pytest.raises(ValueError, match="benchmark only"):
+        people_training_data(corpus, mnist, "test", 12, seed=0, cache_dir=tmp_path, progress=False)
