@@ -21,7 +21,8 @@ EXTRAS = {
         "imageio>=2.30", "psycopg2-binary>=2.9",
     ],
     "pettingzoo": ["pettingzoo>=1.24"],
-    "bench": ["panda-gym>=3.0.7"],
+    # panda-gym for throughput; pocketsphinx (its wheel ships the en-us model) as the real-people reference reader.
+    "bench": ["panda-gym>=3.0.7", "pocketsphinx>=5.0"],
 }
 EXTRAS["all"] = sorted({req for reqs in EXTRAS.values() for req in reqs})
 # More speech engines, never in [all]: DECtalk (a training share; its binaries' licence is unclear) and Piper's neural
