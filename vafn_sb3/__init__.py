@@ -52,3 +52,8 @@ __all__ = [
 from vafn_sb3.common.serialization import atomic_write, load_weights, save_weights  # noqa: E402
 
 __all__ += ["atomic_write", "load_weights", "save_weights"]
+
+from vafn_sb3.aliases import register_stock_aliases  # noqa: E402
+
+register_stock_aliases()  # our policies as stock SB3 aliases: `python -m rl_zoo3.train --gym-packages vafn_sb3`
+__all__ += ["register_stock_aliases"]
