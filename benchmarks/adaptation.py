@@ -79,7 +79,7 @@ from vafn_sb3.target_inference import (  # noqa: E402
     inference_policy_for_env,
     load_estimator,
 )
-from vafn_sb3.loading import load_model, load_model_or_exit, training_seed  # noqa: E402
+from vafn_sb3.loading import add_trust_flag, load_model, load_model_or_exit, training_seed  # noqa: E402
 from zoo.registry import register_algorithms  # noqa: E402
 from zoo.study import support_budget  # noqa: E402
 
@@ -166,7 +166,7 @@ def evaluate_model(method: Method, path: Path, args: argparse.Namespace, tasks: 
     """Adaptation rows of one saved model of ``method`` (K = 0 only when the method is zero-shot)."""
     torch.set_num_threads(1)
     register_algorithms()
-    model, _ = load_model(path, method.algo)  # an SB3 zip or a packaged weights-only policy
+    model, _ = load_model(path, method.algo, trust_remote_code=args.trust_remote_code)  # SB3 zips: trusted only
     env_kwargs = {**args.env_kwargs, **method.env_kwargs}
     if method.target_inference is not None:
         estimator = estimator_of(method, args)
@@ -318,6 +318,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("--env", default="VAFN/ThreeArmReachHidden-v1", help="env ID")
     parser.add_argument("--env-kwargs", type=json.loads, default={}, help="JSON kwargs of every method's env")
+    add_trust_flag(parser)
     parser.add_argument("--method", nargs="+", action="append", default=[], metavar="FIELD",
                         help=f"LABEL ALGO GLOB [ENV_KWARGS_JSON] [{'|'.join(MODES)}]; repeat for every method")
     parser.add_argument("--target-estimator", type=Path, default=None,
@@ -378,7 +379,8 @@ def main(argv: list[str] | None = None) -> None:
             raise SystemExit(f"--{flag}: {error}") from None
     for method in methods:  # likewise every model file, before any evaluation runs
         for path in method.paths:
-            load_model_or_exit(path, method.algo, f"--method {method.label}: ")
+            load_model_or_exit(path, method.algo, f"--method {method.label}: ",
+                               trust_remote_code=args.trust_remote_code)
     args.out.mkdir(parents=True, exist_ok=True)
     benchmark = InstructionBenchmark(args.env, args.min_length, args.max_length, n_test=args.n_tasks,
                                      env_kwargs=args.env_kwargs)

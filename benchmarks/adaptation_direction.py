@@ -31,7 +31,7 @@ from vafn_gym import InstructionBenchmark  # noqa: E402
 from vafn_gym.benchmarks import confidence_half_width  # noqa: E402
 from vafn_gym.files import write_csv_rows  # noqa: E402
 from vafn_sb3.common.adaptation import evaluate_adaptation  # noqa: E402
-from vafn_sb3.loading import load_model_or_exit  # noqa: E402
+from vafn_sb3.loading import add_trust_flag, load_model_or_exit  # noqa: E402
 
 COLUMNS = ("final_cm", "moved_cm", "cosine", "success")
 
@@ -97,6 +97,7 @@ def main(argv: list[str] | None = None) -> list[str]:
     )
     parser.add_argument("models", help="glob of saved models, one per seed (quote it)")
     parser.add_argument("--algo", default=None, help="force the models' algorithm key")
+    add_trust_flag(parser)
     parser.add_argument("--env", default="VAFN/ThreeArmReachHidden-v1", help="env ID")
     parser.add_argument("--env-kwargs", type=json.loads, default={}, help="JSON env kwargs, as the models trained")
     parser.add_argument("--max-length", type=int, default=4, help="longest test instruction (the study's)")
@@ -121,7 +122,7 @@ def main(argv: list[str] | None = None) -> list[str]:
     k_values = sorted(set(args.k))
     models = {}
     for path in paths:  # every file is read before any episode runs, so a bad one fails at once
-        model = load_model_or_exit(path, args.algo)[0]
+        model = load_model_or_exit(path, args.algo, trust_remote_code=args.trust_remote_code)[0]
         if max(k_values) > 0 and not callable(getattr(model, "adapt", None)):
             raise SystemExit(f"{path}: {type(model).__name__} has no adapt(); use --k 0")
         models[Path(path).name] = model

@@ -29,7 +29,7 @@ import torch  # noqa: E402
 from vafn_gym import InstructionBenchmark, episode_rates  # noqa: E402
 from vafn_sb3 import load_pretrained  # noqa: E402
 from vafn_sb3.common.adaptation import evaluate_adaptation  # noqa: E402
-from vafn_sb3.loading import load_model_or_exit  # noqa: E402
+from vafn_sb3.loading import add_trust_flag, load_model_or_exit  # noqa: E402
 
 
 def failure_table(failed: list[dict], handover_steps: int) -> list[str]:
@@ -52,6 +52,7 @@ def main() -> None:
     parser.add_argument("model", nargs="?", type=Path, help="a saved model (.zip or weights-only file)")
     parser.add_argument("--pretrained", default=None, help="evaluate a packaged policy instead (e.g. sac)")
     parser.add_argument("--algo", default=None, help="force the model's algorithm key")
+    add_trust_flag(parser)
     parser.add_argument("--env", default="VAFN/ThreeArmReach-v1", help="env ID")
     parser.add_argument("--env-kwargs", type=json.loads, default={},
                         help="JSON, e.g. '{\"inactive_arms\": \"policy\"}'")
@@ -72,7 +73,7 @@ def main() -> None:
     if args.pretrained is not None:
         model = load_pretrained(args.pretrained, env_id=args.env)
     else:
-        model, _ = load_model_or_exit(args.model, args.algo)
+        model, _ = load_model_or_exit(args.model, args.algo, trust_remote_code=args.trust_remote_code)
     benchmark = InstructionBenchmark(args.env, args.min_length, args.max_length, n_test=args.n_test,
                                      env_kwargs=args.env_kwargs)
     if args.k == 0:

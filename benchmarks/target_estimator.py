@@ -44,7 +44,7 @@ from vafn_sb3 import (  # noqa: E402
     collect_waypoint_readings,
     load_pretrained,
 )
-from vafn_sb3.loading import load_model  # noqa: E402
+from vafn_sb3.loading import add_trust_flag, load_model  # noqa: E402
 from vafn_sb3.target_inference import ESTIMATOR_READINGS, REFINE_SOLVERS, REFINE_STEPS  # noqa: E402
 from zoo.registry import register_algorithms  # noqa: E402
 
@@ -137,7 +137,7 @@ def goal_policy(args: argparse.Namespace) -> Any:
     if args.model is None:
         return load_pretrained("mappo", env_id="VAFN/ThreeArmReachGoal-v1")
     register_algorithms()
-    return load_model(args.model, args.algo)[0]
+    return load_model(args.model, args.algo, trust_remote_code=args.trust_remote_code)[0]
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -150,6 +150,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--model", type=Path, default=None,
                         help="goal-observing model (None: the packaged goal-observing MAPPO)")
     parser.add_argument("--algo", default=None, help="algorithm of --model (None: from its file)")
+    add_trust_flag(parser)
     parser.add_argument("--train-tasks", type=int, default=1500, help="train-split instructions to collect on")
     parser.add_argument("--test-tasks", type=int, default=100, help="held-out test instructions to measure on")
     parser.add_argument("--max-length", type=int, default=10,

@@ -57,5 +57,5 @@ def test_recurrent_baseline_trains_and_is_evaluated_on_the_hidden_family(tmp_pat
 
     (saved,) = (tmp_path / "models").glob("*.zip")
     for algo in ("ppo_lstm", None):
-        model, key = load_model(saved, algo)
+        model, key = load_model(saved, algo, trust_remote_code=True)
         assert isinstance(model, RecurrentPPO) and key == "ppo_lstm"

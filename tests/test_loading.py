@@ -47,7 +47,7 @@ def env():
 def test_a_saved_zip_loads_as_the_algorithm_that_saved_it(key, build, detected, env, tmp_path):
     model = build(env)
     model.save(tmp_path / f"{key}.zip")
-    loaded, found = load_model(tmp_path / f"{key}.zip")
+    loaded, found = load_model(tmp_path / f"{key}.zip", trust_remote_code=True)
     assert found == detected
     assert isinstance(loaded, type(model)) or (detected == "mtsac" and isinstance(loaded, MTSAC))
     assert type(loaded.policy) is type(model.policy)
@@ -57,7 +57,7 @@ def test_a_zoo_run_folder_names_the_algorithm_among_those_sharing_a_policy(env, 
     run = tmp_path / "sac" / "VAFN-ThreeArmReach-v1_1"
     run.mkdir(parents=True)
     SAC("SharedAgentPolicy", env, policy_kwargs=dict(net_arch=TINY)).save(run / "VAFN-ThreeArmReach-v1.zip")
-    model, key = load_model(run / "VAFN-ThreeArmReach-v1.zip")
+    model, key = load_model(run / "VAFN-ThreeArmReach-v1.zip", trust_remote_code=True)
     assert key == "sac" and type(model) is SAC
 
 
@@ -65,7 +65,7 @@ def test_a_zoo_run_folder_does_not_override_the_policy_the_file_names(env, tmp_p
     run = tmp_path / "mtsac" / "VAFN-ThreeArmReach-v1_1"  # a MAAC zip misplaced under another algorithm's folder
     run.mkdir(parents=True)
     MAAC(env=env, policy_kwargs=dict(net_arch=dict(pi=TINY, qf=[16]))).save(run / "VAFN-ThreeArmReach-v1.zip")
-    assert load_model(run / "VAFN-ThreeArmReach-v1.zip")[1] == "maac"
+    assert load_model(run / "VAFN-ThreeArmReach-v1.zip", trust_remote_code=True)[1] == "maac"
 
 
 def _data_with_policy(serialized: str, module: str) -> dict:
@@ -94,7 +94,7 @@ def test_a_zip_naming_no_known_policy_is_still_tried_with_every_algorithm(env, t
         for name, content in entries.items():
             archive.writestr(name, content)
     with pytest.raises(ValueError, match="could not load .* with any algorithm") as error:
-        load_model(path)  # every candidate fails on the broken class, and the error lists them all
+        load_model(path, trust_remote_code=True)  # every candidate fails on the broken class; the error lists them all
     assert all(f"{key}: " in str(error.value) for key in ("mtsac", "sac", "maac", "maddpg", "mappo", "td3", "ppo"))
 
 

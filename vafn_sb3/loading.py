@@ -4,6 +4,11 @@
 holds its meta-learning hyperparameters; an SB3 zip names its policy class, which narrows the algorithms to those with
 that policy; a zoo run's folder ``<algo>/<EnvName>_<N>/`` names the algorithm. The candidates are then tried in turn,
 the others after them; the error lists why each one refused the file.
+
+No file runs code unless the caller says it trusts it: a weights-only file loads with :func:`load_weights` (nothing is
+unpickled); an SB3 zip, whose ``data`` entry is a pickle that runs code when loaded, is refused with a ``ValueError``
+naming the file unless ``trust_remote_code=True`` (``--trust-remote-code`` on the command lines). Either way the zip
+directory's sizes are checked before anything is inflated, and a model with non-finite weights is refused.
 """
 
 from __future__ import annotations
@@ -39,15 +44,29 @@ def _candidates() -> dict[str, type]:
     return {**candidates, "ppo_lstm": RecurrentPPO}
 
 
-def _zip_entries(path: Path) -> tuple[list[str], dict[str, Any]]:
-    """The zip's entry names and its SB3 ``data`` JSON (empty when absent or unreadable)."""
+def _zip_entries(path: Path) -> list[str]:
+    """The zip's entry names, after its file and directory sizes are checked (nothing is inflated)."""
+    from vafn_sb3.common.serialization import check_file_size, check_zip_directory
+
+    check_file_size(path, str(path))
     try:
         with zipfile.ZipFile(path) as archive:
-            names = archive.namelist()
-            data = json.loads(archive.read("data")) if "data" in names else {}
-    except (zipfile.BadZipFile, json.JSONDecodeError, KeyError) as error:
+            check_zip_directory(archive, str(path))
+            return archive.namelist()
+    except (zipfile.BadZipFile, OSError, EOFError) as error:
         raise ValueError(f"{path} is not a saved model (zip): {error}") from error
-    return names, data
+
+
+def _sb3_data(path: Path) -> dict[str, Any]:
+    """The SB3 ``data`` JSON of a size-checked zip (its values are read as JSON, nothing is unpickled)."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            data = json.loads(archive.read("data"))
+    except (zipfile.BadZipFile, json.JSONDecodeError, UnicodeDecodeError, KeyError, OSError) as error:
+        raise ValueError(f"{path} is not a saved model (zip): {error}") from error
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: its data entry is not a JSON object")
+    return data
 
 
 def saved_policy_class(data: dict[str, Any]) -> tuple[str, str] | None:
@@ -74,26 +93,43 @@ def _policy_classes(algorithm: type) -> set[tuple[str, str]]:
     return {(policy.__module__, policy.__qualname__) for policy in algorithm.policy_aliases.values()}
 
 
-def load_model(path: str | Path, algo: str | None = None) -> tuple[Any, str]:
+def untrusted_sb3_zip_error(path: str | Path) -> ValueError:
+    """The refusal of an SB3 zip loaded without ``trust_remote_code``: what it is and the two ways on."""
+    return ValueError(f"{path} is an SB3 model zip: its data entry is a pickle, which runs code when loaded; refused. "
+                      "Load it with trust_remote_code=True (--trust-remote-code) only if you made it or trust its "
+                      "source, or convert it once with vafn_sb3.save_weights")
+
+
+def load_model(path: str | Path, algo: str | None = None, *, trust_remote_code: bool = False) -> tuple[Any, str]:
     """``(model, algorithm key)`` of the policy saved at ``path`` (``ValueError`` naming why it cannot load).
 
-    :param path: an SB3 ``.zip`` (``model.save``) or a weights-only file (``vafn_sb3.save_weights``).
+    :param path: a weights-only file (``vafn_sb3.save_weights``) or, trusted only, an SB3 ``.zip`` (``model.save``).
     :param algo: force an algorithm key (sac, mtsac, maml_sac, maac, maddpg, mappo, td3, ppo, ppo_lstm).
+    :param trust_remote_code: load SB3 zips with SB3's ``load``, which unpickles the file: code in it runs. Without
+        it only weights-only files load and an SB3 zip is refused.
     """
     path = Path(path)
     if not path.is_file() and path.with_suffix(".zip").is_file():
         path = path.with_suffix(".zip")
     if not path.is_file():
         raise FileNotFoundError(f"no model file at {path}")
-    names, data = _zip_entries(path)
+    names = _zip_entries(path)
     candidates = _candidates()
     if algo is not None and algo not in candidates:
         raise ValueError(f"unknown algorithm {algo!r}; choose one of {sorted(candidates)}")
-    if "config.json" in names and "data" not in names:  # weights-only format: it names its algorithm
+    if "data" not in names:  # weights-only format: it names its algorithm (load_weights says what a file lacks)
         from vafn_sb3.common.serialization import load_weights
 
         model = load_weights(path)
         return model, type(model).__name__.lower()
+    if not trust_remote_code:
+        raise untrusted_sb3_zip_error(path)
+    return _load_trusted_sb3(path, algo, candidates)
+
+
+def _load_trusted_sb3(path: Path, algo: str | None, candidates: dict[str, type]) -> tuple[Any, str]:
+    """``(model, key)`` of an SB3 zip through SB3's unpickling ``load`` (trusted files only), weights checked finite."""
+    data = _sb3_data(path)
     if algo is not None:
         order = [algo]
     elif MAML_KEYS <= set(data):
@@ -109,22 +145,39 @@ def load_model(path: str | Path, algo: str | None = None) -> tuple[Any, str]:
     failures = []
     for key in dict.fromkeys(order):
         try:
-            return candidates[key].load(path, device="cpu"), key
+            model = candidates[key].load(path, device="cpu")
         except Exception as error:  # noqa: BLE001 - try the next algorithm; report all failures together
             failures.append(f"{key}: {type(error).__name__}: {str(error)[:120]}")
+            continue
+        from vafn_sb3.common.serialization import check_finite
+
+        check_finite(model.policy.state_dict(), str(path))
+        return model, key
     raise ValueError(f"could not load {path} with any algorithm ({'; '.join(failures)}); pass the algorithm "
                      "explicitly if it is one of these")
 
 
-def load_model_or_exit(path: str | Path, algo: str | None = None, context: str = "") -> tuple[Any, str]:
+def load_model_or_exit(path: str | Path, algo: str | None = None, context: str = "", *,
+                       trust_remote_code: bool = False) -> tuple[Any, str]:
     """:func:`load_model` for command-line tools: a file that does not load stops the program in one line.
 
     :param context: put before the reason (e.g. ``"--method mtsac: "``).
+    :param trust_remote_code: as in :func:`load_model`.
     """
     try:
-        return load_model(path, algo)
+        return load_model(path, algo, trust_remote_code=trust_remote_code)
     except (ValueError, FileNotFoundError) as error:
         raise SystemExit(f"{context}{error}") from None
+
+
+#: Help of every command line's ``--trust-remote-code`` (:func:`add_trust_flag`).
+TRUST_HELP = ("load SB3 .zip models, whose pickled data runs code when loaded: only files you made or trust. Without "
+              "it only weights-only files (vafn_sb3.save_weights, the packaged policies) load")
+
+
+def add_trust_flag(parser: Any) -> None:
+    """Add ``--trust-remote-code`` (``args.trust_remote_code``) to an ``argparse`` parser that loads models."""
+    parser.add_argument("--trust-remote-code", action="store_true", help=TRUST_HELP)
 
 
 def training_seed(path: str | Path) -> int | None:
@@ -137,13 +190,15 @@ def training_seed(path: str | Path) -> int | None:
 def training_env(path: str | Path) -> tuple[str | None, dict[str, Any]]:
     """``(env id, env kwargs)`` the model at ``path`` was trained on, from the files saved beside it (or ``None``).
 
-    Reads a zoo run's ``<EnvName>/config.yml`` or a packaged policy's ``.json`` metadata.
+    Reads a zoo run's ``<EnvName>/config.yml`` (with a YAML ``SafeLoader`` that knows only rl_zoo3's tags) or a
+    packaged policy's ``.json`` metadata; ``ValueError`` naming the file when it is too large, a Python tag outside
+    that allow-list, or not a mapping.
     """
     path = Path(path)
     meta = path.with_suffix(".json")
     if meta.is_file():
         try:
-            info = json.loads(meta.read_text())
+            info = json.loads(_small_text(meta))
         except json.JSONDecodeError:
             info = {}
         if isinstance(info, dict) and "env_id" in info:
@@ -152,15 +207,33 @@ def training_env(path: str | Path) -> tuple[str | None, dict[str, Any]]:
     if config.is_file():
         import yaml
 
+        from vafn_sb3.common.run_yaml import load_run_yaml
+
         try:
-            loaded = yaml.load(config.read_text(), Loader=yaml.UnsafeLoader)  # the zoo writes python tuples
-        except yaml.YAMLError:
-            loaded = None
+            loaded = load_run_yaml(_small_text(config))
+        except yaml.YAMLError as error:
+            reason = " ".join(str(error).split())
+            raise ValueError(f"{config} is not a zoo config that loads safely: {reason}") from None
         entries = dict(loaded) if isinstance(loaded, list) else (loaded or {})
-        env_kwargs = entries.get("env_kwargs") or {}
+        env_kwargs = entries.get("env_kwargs") if isinstance(entries, dict) else None
+        if not isinstance(env_kwargs, (dict, type(None))):
+            raise ValueError(f"{config}: env_kwargs is not a mapping")
+        env_kwargs = env_kwargs or {}
         env_name = path.parent.name.rsplit("_", 1)[0]  # <EnvName>_<N>
         return env_name.replace("-", "/", 1) if env_name.startswith("VAFN-") else env_name, dict(env_kwargs)
     return None, {}
+
+
+def _small_text(path: Path) -> str:
+    """The text of a metadata file beside a model, ``ValueError`` naming it when it is larger than a config can be."""
+    from vafn_sb3.common.serialization import MAX_JSON_ENTRY_BYTES
+
+    if path.stat().st_size > MAX_JSON_ENTRY_BYTES:
+        raise ValueError(f"{path} is {path.stat().st_size:,} bytes; a config has at most {MAX_JSON_ENTRY_BYTES:,}")
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as error:
+        raise ValueError(f"{path} is not UTF-8 text: {error}") from None
 
 
 def task_family(env_id: str, env_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
