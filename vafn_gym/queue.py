@@ -37,7 +37,7 @@ __all__ = [
 
 #: The overflow policies :class:`InstructionQueue` accepts.
 OVERFLOW_POLICIES: tuple[str, ...] = ("raise", "drop_oldest")
-#: How many evicted items :attr:`InstructionQueue.dropped_items` keeps (the most recent ones).
+#: How many evicted items :attr:`InstructionQueue.dropped_items` keeps (the most recent ones); ``on_drop`` gets all.
 DROPPED_HISTORY: int = 100
 
 OverflowPolicy = Literal["raise", "drop_oldest"]
@@ -45,6 +45,9 @@ OverflowPolicy = Literal["raise", "drop_oldest"]
 
 class QueueFullError(RuntimeError):
     """Raised by :meth:`InstructionQueue.enqueue` when the queue is full and its overflow policy is ``"raise"``."""
+
+
+DropCallback = Callable[["QueuedInstruction"], None]
 
 
 @dataclass(frozen=True)
@@ -98,12 +101,16 @@ class InstructionQueue:
     evicts the oldest ready ones, the put-back entry first).
 
     :param capacity: the most ready entries the queue holds at once (>= 1).
-    :param overflow: what :meth:`enqueue` does when the queue is full: ``"raise"`` a :class:`QueueFullError` and change
-        nothing, or ``"drop_oldest"``: evict the oldest ready entry, count it in :attr:`dropped` and keep it in
-        :attr:`dropped_items`.
+    :param overflow: what :meth:`enqueue` does when the queue is full: ``"raise"`` (the default, backpressure): wait up
+        to the enqueue's ``timeout`` for room, then raise :class:`QueueFullError` and change nothing; or
+        ``"drop_oldest"``: evict the oldest ready entry, count it in :attr:`dropped`, keep it in :attr:`dropped_items`
+        (the last ``DROPPED_HISTORY``) and hand it to ``on_drop``.
     :param clock: zero-argument function giving the arrival timestamp in seconds (monotonic clocks only).
     :param n_arms: the arm count of the layout the instructions are for: validated enqueues reject higher arm ids and
         :attr:`QueuedInstruction.instruction` checks them (``None``: any arm id >= 1).
+    :param on_drop: called with *every* evicted entry, on the enqueuing thread, after the queue's lock is released (so
+        it may use the queue). An exception it raises is kept in :attr:`drop_callback_errors`, never raised to the
+        producer, whose entry is queued.
     """
 
     def __init__(
@@ -113,6 +120,7 @@ class InstructionQueue:
         clock: Callable[[], float] = time.perf_counter,
         *,
         n_arms: int | None = None,
+        on_drop: DropCallback | None = None,
     ) -> None:
         if isinstance(capacity, bool) or not isinstance(capacity, Integral):
             raise ValueError(f"capacity must be an integer >= 1, got {brief_repr(capacity)}")
@@ -122,6 +130,8 @@ class InstructionQueue:
             raise ValueError(f"overflow must be one of {list(OVERFLOW_POLICIES)}, got {brief_repr(overflow)}")
         if not callable(clock):
             raise ValueError(f"clock must be callable, got {brief_repr(clock)}")
+        if on_drop is not None and not callable(on_drop):
+            raise ValueError(f"on_drop must be callable or None, got {brief_repr(on_drop)}")
         if n_arms is not None:
             Instruction().check_arms(n_arms)  # validates n_arms itself
         self._capacity = int(capacity)
@@ -131,7 +141,11 @@ class InstructionQueue:
         self._items: deque[QueuedInstruction] = deque()
         self._in_flight: dict[int, QueuedInstruction] = {}
         self._dropped_items: deque[QueuedInstruction] = deque(maxlen=DROPPED_HISTORY)
-        self._cond = threading.Condition(threading.Lock())
+        self._on_drop = on_drop
+        self._drop_callback_errors: list[str] = []
+        lock = threading.Lock()
+        self._cond = threading.Condition(lock)  # "an entry is ready"
+        self._not_full = threading.Condition(lock)  # "there is room", for producers that wait
         self._next_sequence = 0
         self._enqueued = 0
         self._dequeued = 0
@@ -192,9 +206,18 @@ class InstructionQueue:
 
     @property
     def dropped_items(self) -> list[QueuedInstruction]:
-        """The most recently evicted entries (at most ``DROPPED_HISTORY``), oldest first, as a copy."""
+        """The most recently evicted entries (at most ``DROPPED_HISTORY``), oldest first, as a copy.
+
+        Every eviction, without limit, goes to the ``on_drop`` callback.
+        """
         with self._cond:
             return list(self._dropped_items)
+
+    @property
+    def drop_callback_errors(self) -> list[str]:
+        """What the ``on_drop`` callback raised, one line per failed call, oldest first (a copy)."""
+        with self._cond:
+            return list(self._drop_callback_errors)
 
     # --- producer side ---
     def enqueue(
@@ -203,6 +226,7 @@ class InstructionQueue:
         source: str = "user",
         validate: bool = True,
         metadata: Mapping | None = None,
+        timeout: float | None = 0.0,
     ) -> QueuedInstruction:
         """Append an instruction, timestamped and numbered on arrival, and wake a waiting consumer.
 
@@ -213,25 +237,27 @@ class InstructionQueue:
             and the error surfaces on :attr:`QueuedInstruction.instruction`, so a stream can defer parsing to the
             consumer.
         :param metadata: free-form extras stored (copied) on the entry.
+        :param timeout: with the ``"raise"`` policy, how long to wait for room in a full queue: ``0`` (default) raises
+            at once, a positive number waits at most that long, ``None`` or ``math.inf`` waits forever. Ignored by
+            ``"drop_oldest"``, which never waits.
         :return: the queued entry.
-        :raises QueueFullError: when the queue is full and the policy is ``"raise"``; the queue is then unchanged.
+        :raises QueueFullError: when the queue is (still) full and the policy is ``"raise"``; the queue is unchanged.
         """
         if not isinstance(source, str):
             raise ValueError(f"source must be a string, got {brief_repr(source)}")
         if metadata is not None and not isinstance(metadata, Mapping):
             raise ValueError(f"metadata must be a mapping or None, got {brief_repr(metadata)}")
+        seconds = _wait_seconds(timeout)
         # Parse outside the lock: it can be slow and never depends on the queue's state.
         payload = Instruction.coerce(item, n_arms=self._n_arms) if validate else item
         extras = dict(metadata) if metadata is not None else {}
         with self._cond:
-            if len(self._items) >= self._capacity and self._overflow == "raise":
+            if self._overflow == "raise" and not self._wait_for_room(seconds):
                 raise QueueFullError(
                     f"instruction queue is full ({self._capacity} entries); "
                     f"rejected {brief_repr(item)} from {brief_repr(source)}"
                 )
-            while len(self._items) >= self._capacity:
-                self._dropped_items.append(self._items.popleft())
-                self._dropped += 1
+            evicted = self._evict_for_room()
             entry = QueuedInstruction(
                 payload=payload,
                 arrival_time=float(self._clock()),
@@ -244,7 +270,36 @@ class InstructionQueue:
             self._items.append(entry)
             self._enqueued += 1
             self._cond.notify()
+        self._report_drops(evicted)
         return entry
+
+    def _wait_for_room(self, seconds: float | None) -> bool:
+        """Under the lock: wait up to ``seconds`` (``None``: forever) until a ready slot is free; whether one is."""
+        if len(self._items) >= self._capacity and seconds != 0:
+            self._not_full.wait_for(lambda: len(self._items) < self._capacity, timeout=seconds)
+        return len(self._items) < self._capacity
+
+    def _evict_for_room(self) -> list[QueuedInstruction]:
+        """Under the lock: evict the oldest ready entries until one slot is free; returns them, oldest first."""
+        evicted = []
+        while len(self._items) >= self._capacity:
+            evicted.append(self._items.popleft())
+        self._dropped_items.extend(evicted)
+        self._dropped += len(evicted)
+        return evicted
+
+    def _report_drops(self, evicted: list[QueuedInstruction]) -> None:
+        """Outside the lock: hand every evicted entry to ``on_drop``, keeping (not raising) what the callback raises."""
+        if self._on_drop is None:
+            return
+        for entry in evicted:
+            try:
+                self._on_drop(entry)
+            except Exception as error:  # noqa: BLE001 - the producer's entry is queued; the callback's fault is kept
+                with self._cond:
+                    self._drop_callback_errors.append(
+                        f"on_drop raised {type(error).__name__}: {brief_repr(str(error))} for entry #{entry.sequence}"
+                    )
 
     # --- consumer side ---
     def _pop_ready(self, timeout: Any) -> QueuedInstruction | None:
@@ -252,7 +307,10 @@ class InstructionQueue:
         seconds = _wait_seconds(timeout)
         if not self._items and seconds != 0:
             self._cond.wait_for(lambda: bool(self._items), timeout=seconds)
-        return self._items.popleft() if self._items else None
+        if not self._items:
+            return None
+        self._not_full.notify()
+        return self._items.popleft()
 
     def dequeue(self, timeout: float | None = 0.0) -> QueuedInstruction | None:
         """Remove and return the oldest entry, waiting up to ``timeout`` seconds for one; ``None`` if still empty.
@@ -378,6 +436,7 @@ class InstructionQueue:
             items = list(self._items)
             self._items.clear()
             self._cleared += len(items)
+            self._not_full.notify_all()
             return items
 
     def discard(self, predicate: Callable[[QueuedInstruction], bool]) -> list[QueuedInstruction]:
@@ -393,6 +452,7 @@ class InstructionQueue:
             if removed:
                 self._items = deque(entry for entry in self._items if not predicate(entry))
                 self._cleared += len(removed)
+                self._not_full.notify_all()
             return removed
 
     @property
@@ -444,17 +504,50 @@ class ArrivalProcess(ABC):
         :param step: the env step counter (>= 0).
         """
 
-    def feed(self, queue: InstructionQueue, step: int, source: str | None = None) -> list[QueuedInstruction]:
+    def check_arms(self, n_arms: int) -> None:
+        """Raise ``ValueError`` naming the first arrival that names an arm above ``n_arms``, where that is knowable now.
+
+        Called when the process is attached to an env. The base class knows nothing ahead of time (a sampler's output is
+        only checked when it arrives); subclasses with fixed instructions check them all.
+
+        :param n_arms: the env's arm count.
+        """
+        Instruction().check_arms(n_arms)  # validates n_arms itself
+
+    def feed(
+        self,
+        queue: InstructionQueue,
+        step: int,
+        source: str | None = None,
+        on_error: Callable[[str], None] | None = None,
+    ) -> list[QueuedInstruction]:
         """Enqueue this step's arrivals into ``queue`` (metadata ``{"step": step}``) and return the new entries.
 
-        With an ``overflow="raise"`` queue a :class:`QueueFullError` propagates; earlier arrivals stay queued.
+        Without ``on_error``, a malformed arrival (``ValueError``) or a full ``overflow="raise"`` queue
+        (:class:`QueueFullError`) propagates; earlier arrivals stay queued. With ``on_error``, each failure is reported
+        to it as one line naming the step and the arrival, that arrival is skipped and the others are still fed.
 
         :param queue: the queue to feed.
         :param step: the env step counter (>= 0).
         :param source: source name for the entries (default: the process's ``default_source``).
+        :param on_error: receives a line per arrival that could not be queued (or per step whose arrivals could not be
+            drawn); ``None`` raises instead.
         """
         name = self.default_source if source is None else source
-        return [queue.enqueue(item, source=name, metadata={"step": step}) for item in self.arrivals(step)]
+        if on_error is None:
+            return [queue.enqueue(item, source=name, metadata={"step": step}) for item in self.arrivals(step)]
+        try:
+            items = self.arrivals(step)
+        except Exception as error:  # noqa: BLE001 - a faulty process (e.g. its sampler) must not stop the env's loop
+            on_error(f"arrivals at step {step} skipped: {type(error).__name__}: {brief_repr(str(error))}")
+            return []
+        entries = []
+        for index, item in enumerate(items):
+            try:
+                entries.append(queue.enqueue(item, source=name, metadata={"step": step}))
+            except (ValueError, QueueFullError) as error:
+                on_error(f"arrival {index} at step {step} ({brief_repr(item)}) skipped: {error}")
+        return entries
 
 
 def _is_single_instruction(value: Any) -> bool:
@@ -464,6 +557,19 @@ def _is_single_instruction(value: Any) -> bool:
     if isinstance(value, (list, tuple)):
         return all(isinstance(element, (Real, np.number)) for element in value)
     return True
+
+
+def _schedule_place(step: int, index: int, count: int) -> str:
+    """Where a scheduled instruction is: ``"schedule step 5"``, or ``"schedule step 5, instruction 1"`` of several."""
+    return f"schedule step {step}" + ("" if count == 1 else f", instruction {index}")
+
+
+def _check_arms(item: Instruction, n_arms: int, where: str) -> None:
+    """Check an instruction's arm ids against ``n_arms``; the ``ValueError`` starts with ``where``."""
+    try:
+        item.check_arms(n_arms)
+    except ValueError as error:
+        raise ValueError(f"{where}: {error}") from None
 
 
 class ScheduledArrivals(ArrivalProcess):
@@ -496,8 +602,7 @@ class ScheduledArrivals(ArrivalProcess):
                 try:
                     items.append(Instruction.coerce(element, n_arms=n_arms))
                 except ValueError as error:
-                    where = f"schedule step {step}" + ("" if len(values) == 1 else f", instruction {index}")
-                    raise ValueError(f"{where}: {error}") from error
+                    raise ValueError(f"{_schedule_place(step, index, len(values))}: {error}") from error
             parsed[step] = tuple(items)
         self._schedule = dict(sorted(parsed.items()))
 
@@ -505,6 +610,16 @@ class ScheduledArrivals(ArrivalProcess):
     def steps(self) -> tuple[int, ...]:
         """The scheduled steps, ascending."""
         return tuple(self._schedule)
+
+    def check_arms(self, n_arms: int) -> None:
+        """Raise ``ValueError`` naming the first scheduled step (and instruction) with an arm above ``n_arms``.
+
+        :param n_arms: the env's arm count.
+        """
+        super().check_arms(n_arms)
+        for step, items in self._schedule.items():
+            for index, item in enumerate(items):
+                _check_arms(item, n_arms, _schedule_place(step, index, len(items)))
 
     @property
     def last_step(self) -> int:
@@ -600,6 +715,16 @@ class PoissonArrivals(ArrivalProcess):
     def seed(self) -> int:
         """The entropy every step's generator is derived from (the seed, or the drawn entropy for ``seed=None``)."""
         return self._entropy
+
+    def check_arms(self, n_arms: int) -> None:
+        """Raise ``ValueError`` naming the first listed instruction with an arm above ``n_arms`` (a sampler's output is
+        checked when it arrives).
+
+        :param n_arms: the env's arm count.
+        """
+        super().check_arms(n_arms)
+        for index, item in enumerate(self._pool):
+            _check_arms(item, n_arms, f"instructions[{index}]")
 
     def reset(self, seed: int | None = None) -> None:
         """Reseed; ``None`` draws fresh entropy.

@@ -13,7 +13,9 @@ Loop, one control step at a time:
 4. **reset to θ**: drop the adapted parameters (``adapt`` never modifies the model) and continue.
 
 Instructions may be enqueued from any thread (the queue is thread-safe). Every instruction gets an
-:class:`InstructionLog` row (arrival, wait, adaptation and first-action times, completion step, success, collisions).
+:class:`InstructionLog` row (arrival, wait, adaptation and first-action times, completion step, success, collisions);
+one that could not be started is in :attr:`OnlineController.rejected`, one the queue evicted (``drop_oldest``) in
+:attr:`OnlineController.dropped`.
 """
 
 from __future__ import annotations
@@ -114,13 +116,29 @@ class OnlineController:
         self.twin = MultiArmEnv(**stream.world_kwargs) if k > 0 else None
         self.hold_action = np.zeros(stream.action_space.shape, dtype=np.float32)
         self.log: list[InstructionLog] = []
+        #: Every line the stream reported: rejected instructions and arrivals that could not be queued.
         self.errors: list[str] = []
+        #: Every queued instruction the stream could not start: ``sequence``, ``source``, ``reason``, ``step``.
+        self.rejected: list[dict[str, Any]] = []
+        self._collected = (0, 0)  # how many of the stream's errors and rejections of this episode were copied
         #: Per-step trace for plots: stream step, distances of the arms to their current targets, running sequence.
         self.trace: dict[str, list] = {"step": [], "distances": [], "sequence": []}
         self._obs: np.ndarray | None = None
         self._policy: Any = None
         self._current: InstructionLog | None = None
         self._dequeue_cpu = 0.0
+
+    @property
+    def dropped(self) -> list[QueuedInstruction]:
+        """Every entry the stream's queue evicted (``overflow="drop_oldest"``), oldest first, as a copy."""
+        return list(self.stream.dropped)
+
+    def _collect(self) -> None:
+        """Copy the stream's new errors and rejections (the stream keeps them per episode only)."""
+        n_errors, n_rejected = self._collected
+        self.errors.extend(self.stream.errors[n_errors:])
+        self.rejected.extend(self.stream.rejected[n_rejected:])
+        self._collected = (len(self.stream.errors), len(self.stream.rejected))
 
     # --- Algorithm 1 ---
     def _begin(self, item: QueuedInstruction) -> None:
@@ -166,10 +184,10 @@ class OnlineController:
         """One control step of Algorithm 1; returns the stream's info dict."""
         if self._obs is None:
             self._obs, _ = self.env.reset(seed=self.seed)
+            self._collected = (0, 0)
         if self.stream.current is None:
-            n_errors = len(self.stream.errors)
             item = self.stream.start_next()
-            self.errors.extend(self.stream.errors[n_errors:])
+            self._collect()
             if item is not None:
                 self._begin(item)
                 # The instruction changed the phase flags and targets: observe again before acting (the stream has no
@@ -186,6 +204,7 @@ class OnlineController:
                 self._current.service_latency_s = now - self._current.dequeue_time
                 self._current.service_cpu_s = time.thread_time() - self._dequeue_cpu
         self._obs, _, terminated, truncated, info = self.env.step(action)
+        self._collect()
         if self._current is not None:
             self._current.collisions += int(info["collision"])
         for record in info["finished"]:

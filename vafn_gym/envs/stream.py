@@ -9,8 +9,15 @@ import numpy as np
 
 from vafn_gym.checks import check_bool, check_int, check_number
 from vafn_gym.envs.multi_arm import MultiArmEnv
-from vafn_gym.instructions import Instruction
-from vafn_gym.queue import ArrivalProcess, InstructionQueue, PoissonArrivals, QueuedInstruction, ScheduledArrivals
+from vafn_gym.instructions import Instruction, brief_repr
+from vafn_gym.queue import (
+    ArrivalProcess,
+    DropCallback,
+    InstructionQueue,
+    PoissonArrivals,
+    QueuedInstruction,
+    ScheduledArrivals,
+)
 
 #: Source name of the items the env's own arrival process enqueues (dropped on reset; user items are kept).
 ARRIVAL_SOURCE = "arrival-process"
@@ -21,8 +28,10 @@ class MultiArmStreamEnv(MultiArmEnv):
     """Instructions arrive asynchronously; the arms hold when the queue is empty, and finishing one starts the next.
 
     Episodes never terminate on success: they are truncated at ``horizon`` steps (2,000, the paper's long-horizon test).
-    Per-instruction outcomes are appended to :attr:`records`; malformed queued items to :attr:`errors` (the loop goes
-    on).
+    Per-instruction outcomes are appended to :attr:`records`; malformed queued items to :attr:`rejected` and
+    :attr:`errors`, arrivals that could not be queued to :attr:`errors` (the loop goes on). Every queued entry ends in
+    exactly one of: :attr:`records` (completed or timed out), :attr:`rejected`, :attr:`dropped` (evicted by
+    ``overflow="drop_oldest"``), or still in the queue (ready or running).
 
     :param arrivals: ``"poisson"`` (seeded, instructions from the task sampler), ``None`` (only user code enqueues,
         e.g. ``env.unwrapped.queue.enqueue("2,3,1")`` from another thread), a schedule ``{step: instruction(s)}`` or
@@ -30,7 +39,9 @@ class MultiArmStreamEnv(MultiArmEnv):
     :param arrival_rate: mean arrivals per step of the Poisson process.
     :param horizon: steps per episode.
     :param queue_capacity: bound of the queue.
-    :param overflow: the queue's overflow policy, "raise" or "drop_oldest".
+    :param overflow: the queue's overflow policy: "raise" (default: backpressure, a producer gets ``QueueFullError`` or
+        waits with ``enqueue(..., timeout=s)``) or "drop_oldest" (every eviction is kept in :attr:`dropped`).
+    :param on_drop: also called with every entry "drop_oldest" evicts (on the producer's thread).
     :param auto_dequeue: start the next queued instruction automatically; set False when a controller (e.g.
         :class:`vafn_sb3.OnlineController`) dequeues itself through :meth:`start_next`.
     :param instruction_timeout: steps allowed per instruction (default ``50 + 80 * len``); a timed-out one is recorded
@@ -44,9 +55,10 @@ class MultiArmStreamEnv(MultiArmEnv):
         arrival_rate: float = 0.005,
         horizon: int = DEFAULT_HORIZON,
         queue_capacity: int = 64,
-        overflow: str = "drop_oldest",
+        overflow: str = "raise",
         auto_dequeue: bool = True,
         instruction_timeout: int | None = None,
+        on_drop: DropCallback | None = None,
         **kwargs: Any,
     ) -> None:
         if "instruction" in kwargs or "max_steps" in kwargs:
@@ -57,22 +69,52 @@ class MultiArmStreamEnv(MultiArmEnv):
             None if instruction_timeout is None else check_int("instruction_timeout", instruction_timeout, 1)
         )
         arrival_rate = check_number("arrival_rate", arrival_rate, 0.0, 1.0)
+        if on_drop is not None and not callable(on_drop):
+            raise ValueError(f"on_drop must be callable or None, got {brief_repr(on_drop)}")
         super().__init__(max_steps=self.horizon, **kwargs)
+        self._user_on_drop = on_drop
+        #: Every entry the queue evicted (``overflow="drop_oldest"``) since the env was made, oldest first; never
+        #: cleared by a reset (the queue and its users' entries outlive episodes).
+        self.dropped: list[QueuedInstruction] = []
         self.queue = InstructionQueue(
-            capacity=check_int("queue_capacity", queue_capacity, 1), overflow=overflow, n_arms=self.n_arms
+            capacity=check_int("queue_capacity", queue_capacity, 1), overflow=overflow, n_arms=self.n_arms,
+            on_drop=self._record_drop,
         )
+        self._arrival_process: ArrivalProcess | None = None
         self.arrival_process = self._make_arrivals(arrivals, arrival_rate)
         self.total_steps = 0
         self.current: QueuedInstruction | None = None
         self.started_at = 0
         self.records: list[dict[str, Any]] = []
+        #: This episode's queued entries that could not be started: ``sequence``, ``source``, ``reason``, ``step``.
+        self.rejected: list[dict[str, Any]] = []
         self.errors: list[str] = []
+
+    @property
+    def arrival_process(self) -> ArrivalProcess | None:
+        """The env's own arrival process (``None``: only user code enqueues)."""
+        return self._arrival_process
+
+    @arrival_process.setter
+    def arrival_process(self, process: ArrivalProcess | None) -> None:
+        """Attach a process, checked against the arm count first (``ValueError`` names the bad arrival)."""
+        if process is not None and not isinstance(process, ArrivalProcess):
+            raise ValueError(f"arrival_process must be an ArrivalProcess or None, got {brief_repr(process)}")
+        if process is not None:
+            process.check_arms(self.n_arms)
+        self._arrival_process = process
+
+    def _record_drop(self, entry: QueuedInstruction) -> None:
+        """The queue's ``on_drop``: keep the evicted entry, then call the user's callback."""
+        self.dropped.append(entry)
+        if self._user_on_drop is not None:
+            self._user_on_drop(entry)
 
     def _make_arrivals(self, arrivals: Any, rate: float) -> ArrivalProcess | None:
         if arrivals is None or isinstance(arrivals, ArrivalProcess):
             return arrivals
         if isinstance(arrivals, str) and arrivals == "poisson":
-            return PoissonArrivals(rate, sampler=self.sampler.sample, seed=0, n_arms=self.n_arms)
+            return PoissonArrivals(rate, sampler=self.sampler.sample, seed=0)
         if isinstance(arrivals, Mapping):
             return ScheduledArrivals(arrivals, n_arms=self.n_arms)
         raise ValueError(f"arrivals must be 'poisson', None, a schedule or an ArrivalProcess, got {arrivals!r:.60}")
@@ -96,12 +138,22 @@ class MultiArmStreamEnv(MultiArmEnv):
             self.current = None
         self.queue.discard(lambda item: item.source == ARRIVAL_SOURCE)
         self.total_steps = 0
-        self.records, self.errors = [], []
+        self.records, self.rejected, self.errors = [], [], []
         self._hold()
         self._pump()
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
-        """Home the arms and start holding; the info carries the stream's state."""
+        """Home the arms and start holding; the info carries the stream's state.
+
+        ``options`` are checked before anything changes: an ``"instruction"`` option raises ``ValueError`` (the stream
+        takes its instructions from the queue) and leaves the arms, the running instruction and the counters as they
+        were.
+        """
+        if isinstance(options, Mapping) and "instruction" in options:
+            raise ValueError(
+                "MultiArmStreamEnv takes instructions from its queue, not from reset options: "
+                "enqueue it instead (env.unwrapped.queue.enqueue(...))"
+            )
         obs, info = super().reset(seed=seed, options=options)
         return obs, {**info, **self._stream_fields([])}
 
@@ -124,17 +176,25 @@ class MultiArmStreamEnv(MultiArmEnv):
                 instruction = self._coerce(item.instruction)
                 self.start_instruction(instruction)
             except ValueError as error:
-                self.queue.ack(item)  # handled: recorded as an error, never retried
-                self.errors.append(f"instruction #{item.sequence} from {item.source!r:.60} rejected: {error}")
+                self.queue.ack(item)  # handled: recorded as rejected, never retried
+                self._reject(item, str(error))
                 continue
             self.current = item
             self.started_at = self.total_steps
             return item
 
+    def _reject(self, item: QueuedInstruction, reason: str) -> None:
+        """Record a queued entry that could not be started, in :attr:`rejected` and :attr:`errors`."""
+        self.rejected.append(
+            {"sequence": item.sequence, "source": item.source, "reason": reason, "step": self.total_steps}
+        )
+        self.errors.append(f"instruction #{item.sequence} from {item.source!r:.60} rejected: {reason}")
+
     def _pump(self) -> None:
-        """Feed this step's arrivals and, when idle and auto_dequeue is on, start the next instruction."""
+        """Feed this step's arrivals (a bad or refused one is recorded in :attr:`errors` and skipped) and, when idle and
+        auto_dequeue is on, start the next instruction."""
         if self.arrival_process is not None:
-            self.arrival_process.feed(self.queue, self.total_steps, source=ARRIVAL_SOURCE)
+            self.arrival_process.feed(self.queue, self.total_steps, source=ARRIVAL_SOURCE, on_error=self.errors.append)
         if self.current is None and self.auto_dequeue:
             self.start_next()
 
