@@ -97,7 +97,7 @@ def test_upstream_rl_zoo_trains_the_zoos_shared_sac_which_load_model_and_enjoy_r
     result = subprocess.run(command, cwd=tmp_path, env=SUBPROCESS_ENV, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-3000:]
 
-    model, algo = load_model(tmp_path / "sac" / f"{ENV_NAME}_1" / f"{ENV_NAME}.zip")
+    model, algo = load_model(tmp_path / "sac" / f"{ENV_NAME}_1" / f"{ENV_NAME}.zip", trust_remote_code=True)  # ours
     assert algo == "sac" and type(model.policy) is SharedAgentSACPolicy
     assert model.num_timesteps == 300 and model._n_updates == 200
 
@@ -114,3 +114,17 @@ def test_upstream_rl_zoo_trains_the_zoos_shared_sac_which_load_model_and_enjoy_r
     episodes = enjoy_main(["--algo", "sac", "--env", ENV_ID, "-f", str(tmp_path), "--n-episodes", "2"])
     assert len(episodes) == 2
     assert all(episode["length"] > 0 and episode["success"] in (0.0, 1.0) for episode in episodes)
+
+
+@pytest.mark.parametrize("algo_name", ["TD3", "DDPG"])
+def test_stock_td3_and_ddpg_train_the_shared_deterministic_actor(algo_name: str) -> None:
+    import gymnasium as gym
+    import stable_baselines3
+
+    import vafn_sb3  # noqa: F401  (registers the aliases)
+    from vafn_sb3.maddpg.policies import MADDPGPolicy
+
+    algo = getattr(stable_baselines3, algo_name)
+    model = algo("SharedAgentPolicy", gym.make(ENV_ID, max_length=1), learning_starts=50, batch_size=32, seed=0)
+    model.learn(80)
+    assert type(model.policy) is MADDPGPolicy and model._n_updates > 0
