@@ -11,17 +11,26 @@ from collections.abc import Sequence
 from typing import NoReturn
 
 
-class _OneLineParser(argparse.ArgumentParser):
-    """An ArgumentParser whose usage errors are one line on stderr and exit code 2."""
+def error_line(prog: str, message: object) -> str:
+    """``<prog>: error: <message>`` as one line (its newlines folded), ending in a newline."""
+    return f"{prog}: error: {' '.join(str(message).split())}\n"
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line on stderr and exit code 2 (every vafn command line)."""
 
     def error(self, message: str) -> NoReturn:
-        """Print ``vafn-instruct: error: <message>`` and exit 2."""
-        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+        """A usage error: print ``<prog>: error: <message> (see --help)`` on one line and exit 2."""
+        self.exit(2, error_line(self.prog, f"{message} (see --help)"))
+
+    def fail(self, message: object) -> NoReturn:
+        """Bad input found after parsing (a file, a value): print ``<prog>: error: <message>`` and exit 2."""
+        self.exit(2, error_line(self.prog, message))
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface."""
-    parser = _OneLineParser(prog="vafn-instruct", description=__doc__)
+    parser = OneLineParser(prog="vafn-instruct", description=__doc__)
     parser.add_argument("--audio", help="speech file (WAV/FLAC/OGG, any sample rate from 8 to 192 kHz)")
     parser.add_argument("--image", help="image of digits 1-3 in a left-to-right row (PNG/JPG/...)")
     parser.add_argument("--code", help='machine code, e.g. "2,3,1" or "[2, 3, 1]"; "" is the empty instruction')
@@ -32,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _fail(message: str) -> int:
     """Print one error line (newlines folded) and return exit code 2."""
-    print("vafn-instruct: error: " + " ".join(str(message).split()), file=sys.stderr)
+    print(error_line("vafn-instruct", message), end="", file=sys.stderr)
     return 2
 
 

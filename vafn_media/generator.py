@@ -18,6 +18,39 @@ from vafn_media.images import ImageSource, canonical_strip
 
 #: The packaged checkpoint (weights + metadata JSON), produced by ``python -m vafn_media.train``.
 DEFAULT_CHECKPOINT = Path(__file__).parent / "checkpoints" / "instruction_model.pt"
+#: Largest checkpoint (bytes) and metadata file :meth:`InstructionGenerator.load` reads, and the largest channel or
+#: hidden size its metadata may give the network (all checked before anything is read or built).
+MAX_CHECKPOINT_BYTES = 64 * 2**20
+MAX_METADATA_BYTES = 2**20
+MAX_MODEL_SIZE = 1024
+
+
+def _bounded_file(path: Path, limit: int) -> Path:
+    """``path`` unless it is larger than ``limit`` bytes (``ValueError`` naming it)."""
+    size = path.stat().st_size
+    if size > limit:
+        raise ValueError(f"{path} is {size:,} bytes; at most {limit:,} are read")
+    return path
+
+
+def _checked_config(metadata: Any, meta_path: Path) -> dict:
+    """The metadata's network sizes, ``ValueError`` naming the file unless each is an integer in [1, MAX_MODEL_SIZE]."""
+    config = metadata.get("config", {}) if isinstance(metadata, dict) else None
+    if not isinstance(config, dict):
+        raise ValueError(f"{meta_path}: expected a JSON object with a 'config' object")
+    sizes = [value for item in config.values() for value in (item if isinstance(item, list) else [item])]
+    if len(sizes) > 16 or not all(type(size) is int and 1 <= size <= MAX_MODEL_SIZE for size in sizes):
+        raise ValueError(f"{meta_path}: network sizes {str(config)[:120]} outside [1, {MAX_MODEL_SIZE}]")
+    return config
+
+
+def _check_finite_weights(model: Any, checkpoint: Path) -> None:
+    """``ValueError`` naming the file when a weight or buffer of the loaded model holds NaN or infinite values."""
+    import torch
+
+    for key, tensor in model.state_dict().items():
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            raise ValueError(f"checkpoint {checkpoint}: {key} holds NaN or infinite values")
 
 
 @dataclass(frozen=True)
@@ -108,15 +141,21 @@ class InstructionGenerator:
                 f"no checkpoint at {checkpoint}; train one with `python -m vafn_media.train`"
             )
         meta_path = checkpoint.with_suffix(".json")
+        _bounded_file(checkpoint, MAX_CHECKPOINT_BYTES)
         try:
-            metadata = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
-            model = InstructionModel(
-                ModelConfig.from_dict(metadata["config"]) if "config" in metadata else ModelConfig()
-            )
+            metadata = json.loads(_bounded_file(meta_path, MAX_METADATA_BYTES).read_text()) if meta_path.is_file() \
+                else {}
+        except (json.JSONDecodeError, UnicodeDecodeError) as error:
+            raise ValueError(f"checkpoint metadata {meta_path} is not JSON: {error}") from error
+        config = _checked_config(metadata, meta_path)
+        try:
+            model = InstructionModel(ModelConfig.from_dict(config) if config else ModelConfig())
+            # weights_only: tensors and plain containers only, a pickle carrying code is refused, never run
             model.load_state_dict(torch.load(checkpoint, map_location="cpu", weights_only=True))
         except Exception as error:  # noqa: BLE001 - torch/pickle/zip/JSON raise many types for a damaged file
             raise ValueError(f"checkpoint {checkpoint} (or its metadata {meta_path.name}) is corrupt or does not "
                              f"match the model: {type(error).__name__}: {str(error)[:200]}") from error
+        _check_finite_weights(model, checkpoint)
         generator = cls(fold_batchnorm(model.eval()), metadata, low_confidence)
         if warm:
             generator.warm_up()

@@ -1,7 +1,8 @@
 """Loading, validating and canonicalising images (OpenCV).
 
-Any size up to MAX_IMAGE_PIXELS, gray or BGR(A), either polarity -> a 32-px strip. A file's pixel count is read from
-its header before anything is decoded; images too small to hold a digit, and pixel noise, are errors.
+Any size up to MAX_IMAGE_PIXELS (sides up to MAX_IMAGE_SIDE, at most MAX_ASPECT_RATIO times longer than high or
+high than long), gray or BGR(A), either polarity -> a 32-px strip. A file's size is read from its header before
+anything is decoded; images too small to hold a digit, and pixel noise, are errors.
 """
 
 from __future__ import annotations
@@ -24,6 +25,10 @@ ImageSource = str | os.PathLike | np.ndarray
 MAX_IMAGE_PIXELS: int = 64_000_000
 #: Smallest accepted image side (pixels): a digit needs a few pixels to be a digit.
 MIN_IMAGE_SIDE: int = 8
+#: Largest accepted image side (pixels), and the most one side may exceed the other: a row of ten digits is about
+#: 6 : 1. This bounds the work arrays (an 8 x 999,999 strip would be scaled to 32 x 4,000,000 floats).
+MAX_IMAGE_SIDE: int = 32_768
+MAX_ASPECT_RATIO: int = 32
 #: Strokes are connected: an ink pixel's neighbour is ink far more often than a random pixel is. Below this ratio
 #: (P(neighbour is ink | ink) / P(ink), worst direction) the image is pixel noise. Measured: 600 rendered and
 #: handwritten strips >= 1.58 (5th percentile 7.1); uniform, Gaussian and salt-and-pepper noise 0.98-1.04.
@@ -52,12 +57,18 @@ def _cv2():
 
 
 def _check_pixels(height: int, width: int, what: str) -> None:
-    """ValueError when an image is larger than MAX_IMAGE_PIXELS or smaller than MIN_IMAGE_SIDE on a side."""
+    """ValueError when an image is larger than MAX_IMAGE_PIXELS or MAX_IMAGE_SIDE, smaller than MIN_IMAGE_SIDE on a
+    side, or more elongated than MAX_ASPECT_RATIO."""
     if height * width > MAX_IMAGE_PIXELS:
         raise ValueError(f"{what} has {width} x {height} = {width * height:,} pixels; at most "
                          f"{MAX_IMAGE_PIXELS:,} pixels are accepted")
+    if max(height, width) > MAX_IMAGE_SIDE:
+        raise ValueError(f"{what} is {width} x {height} pixels; a side has at most {MAX_IMAGE_SIDE:,} pixels")
     if 0 < min(height, width) < MIN_IMAGE_SIDE:
         raise ValueError(f"{what} is too small: {height} x {width} pixels (at least {MIN_IMAGE_SIDE} on each side)")
+    if min(height, width) > 0 and max(height, width) > MAX_ASPECT_RATIO * min(height, width):
+        raise ValueError(f"{what} is {width} x {height} pixels: one side is more than {MAX_ASPECT_RATIO} times the "
+                         "other, not a photo or scan of a row of digits")
 
 
 def _ink_clustering(mask: np.ndarray) -> float:
@@ -95,15 +106,21 @@ def read_image_file(path: str | os.PathLike) -> np.ndarray:
     :param path: file to read.
     """
     cv2 = _cv2()
+    name = f"image file {os.fspath(path)!r}"
     if not os.path.isfile(path):
-        raise ValueError(f"image file {os.fspath(path)!r} does not exist")
+        raise ValueError(f"{name} does not exist")
     size = image_size(path)
-    if size is not None:
-        _check_pixels(*size, f"image file {os.fspath(path)!r}")
+    if size is None:  # nothing is decoded whose size the header does not give
+        raise ValueError(f"{name} is corrupt, truncated or not an image (its header gives no size)")
+    _check_pixels(*size, name)
     data = np.fromfile(os.fspath(path), dtype=np.uint8)
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    try:
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    except cv2.error as error:  # OpenCV's own limits and decoder failures
+        raise ValueError(f"{name} cannot be decoded: {' '.join(str(error).split())[-160:]}") from None
     if image is None:
-        raise ValueError(f"image file {os.fspath(path)!r} is corrupt, truncated or not an image")
+        raise ValueError(f"{name} is corrupt, truncated or not an image")
+    _check_pixels(image.shape[0], image.shape[1], name)  # the decoded size, should a header have lied
     return image
 
 
