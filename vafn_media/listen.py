@@ -32,6 +32,11 @@ VAD_WINDOW: int = 512
 CHUNK_S: float = 0.032
 #: Speech starts at a window with probability >= threshold and goes on while windows stay >= threshold - HYSTERESIS.
 HYSTERESIS: float = 0.15
+#: The background level is this percentile of the window levels of the last FLOOR_HISTORY_S (never below
+#: MIN_FLOOR_DB dBFS, so digital silence does not make every sound "loud").
+FLOOR_PERCENTILE: float = 10.0
+FLOOR_HISTORY_S: float = 10.0
+MIN_FLOOR_DB: float = -90.0
 SOUNDDEVICE_INSTALL = "pip install sounddevice; apt-get install libportaudio2"
 SILERO_INSTALL = "pip install silero-vad (part of vafn[media])"
 
@@ -101,8 +106,10 @@ class RecordingSource(AudioStreamSource):
                 yield block.mean(axis=1)
 
     def chunks(self) -> Iterator[np.ndarray]:
-        """Yield the recording's chunks, paced in real time when :attr:`realtime`."""
+        """Yield the recording's chunks, paced in real time when :attr:`realtime` (from :attr:`started_at`)."""
         started, delivered = time.perf_counter(), 0
+        #: ``perf_counter`` time the first chunk was asked for: a paced sample at ``t`` s arrives at ``started_at + t``.
+        self.started_at = started
         for block in self._blocks():
             if self.closed:
                 return
@@ -276,27 +283,36 @@ def load_vad_model() -> Any:
 
 
 class VoiceActivitySegmenter:
-    """Cuts a continuous stream into utterances with Silero VAD (streaming, 32 ms windows at 16 kHz).
+    """Cuts a continuous stream into utterances with Silero VAD (streaming, 32 ms windows at 16 kHz) and a level gate.
 
-    An utterance closes after ``min_silence_s`` without speech (so it is handed on that long after its end), or at
-    ``max_utterance_s``; stretches with less than ``min_speech_s`` of speech are dropped (clicks, coughs).
+    A window is speech when Silero says so *and* it is at least ``level_gate_db`` above the background (the
+    :data:`FLOOR_PERCENTILE` of the last :data:`FLOOR_HISTORY_S` of window levels) and within ``drop_db`` of the
+    utterance's loudest window: quieter talk behind the speaker (babble) and the VAD's lingering after the last word
+    do not count. An utterance closes after ``min_silence_s`` without speech (so it is handed on that long after its
+    end), or at ``max_utterance_s``; stretches with less than ``min_speech_s`` of speech are dropped (clicks, coughs).
 
     :param threshold: speech probability that starts an utterance.
-    :param min_silence_s: silence that ends one (the pauses between the words of a command are shorter).
+    :param min_silence_s: silence that ends one, and so the delay from the end of speech to the hand-on. Speakers
+        pause up to ~0.35 s between the items of a command ("two, then one, then three"): 0.4 s keeps those
+        commands whole; 0.2 s hands on within 300 ms but splits them (docs/multimedia.md, "Live commands").
     :param pre_roll_s: audio kept before the first speech window, so word onsets are not cut.
     :param min_speech_s: shortest speech kept.
     :param max_utterance_s: longest utterance (then it is closed and a new one starts).
+    :param level_gate_db: how far above the background a speech window must be.
+    :param drop_db: how far below the utterance's loudest window its speech may fall.
     :param model: a Silero VAD model (default: :func:`load_vad_model`).
     """
 
-    def __init__(self, threshold: float = 0.5, min_silence_s: float = 0.2, pre_roll_s: float = 0.2,
-                 min_speech_s: float = 0.15, max_utterance_s: float = 8.0, model: Any = None) -> None:
+    def __init__(self, threshold: float = 0.5, min_silence_s: float = 0.4, pre_roll_s: float = 0.2,
+                 min_speech_s: float = 0.15, max_utterance_s: float = 8.0, level_gate_db: float = 9.0,
+                 drop_db: float = 35.0, model: Any = None) -> None:
         if not 0.0 < threshold < 1.0 or min_silence_s <= 0 or pre_roll_s < 0 or max_utterance_s <= min_speech_s:
             raise ValueError(f"need 0 < threshold < 1, min_silence_s > 0, pre_roll_s >= 0 and max_utterance_s > "
                              f"min_speech_s; got {threshold}, {min_silence_s}, {pre_roll_s}, {max_utterance_s}, "
                              f"{min_speech_s}")
         self.threshold, self.min_silence_s, self.min_speech_s = threshold, min_silence_s, min_speech_s
         self.max_utterance_s = max_utterance_s
+        self.level_gate_db, self.drop_db = level_gate_db, drop_db
         self.model = load_vad_model() if model is None else model
         self._pre_windows = int(np.ceil(pre_roll_s * VAD_RATE / VAD_WINDOW))
         #: Speech stretches dropped as shorter than ``min_speech_s``.
@@ -312,7 +328,16 @@ class VoiceActivitySegmenter:
         self._pre: collections.deque[np.ndarray] = collections.deque(maxlen=self._pre_windows + 1)
         self._parts: list[np.ndarray] | None = None
         self._start_s = self._last_speech_s = 0.0
+        self._peak_db = -np.inf
+        self._levels: collections.deque[float] = collections.deque(maxlen=int(FLOOR_HISTORY_S * VAD_RATE / VAD_WINDOW))
         self._count = 0
+
+    @property
+    def floor_db(self) -> float:
+        """The background level (dBFS): a low percentile of the recent window levels (-90 until 1 s is heard)."""
+        if len(self._levels) < VAD_RATE // VAD_WINDOW:
+            return MIN_FLOOR_DB
+        return max(MIN_FLOOR_DB, float(np.percentile(self._levels, FLOOR_PERCENTILE)))
 
     @property
     def time_s(self) -> float:
@@ -356,18 +381,23 @@ class VoiceActivitySegmenter:
 
         with torch.inference_mode():
             probability = float(self.model(torch.from_numpy(np.ascontiguousarray(window)), VAD_RATE))
+        level = 10.0 * float(np.log10(np.mean(np.square(window, dtype=np.float64)) + 1e-12))
+        self._levels.append(level)
+        loud = level >= max(self.floor_db + self.level_gate_db, self._peak_db - self.drop_db)
         start_s = self.time_s
         self._samples += VAD_WINDOW
         if self._parts is None:
             self._pre.append(window)
-            if probability < self.threshold:
+            if probability < self.threshold or not loud:
                 return None
             self._parts, self._start_s, self._last_speech_s = list(self._pre), start_s, self.time_s
+            self._peak_db = level
             self._pre.clear()
             return None
         self._parts.append(window)
-        if probability >= self.threshold - HYSTERESIS:
+        if probability >= self.threshold - HYSTERESIS and loud:
             self._last_speech_s = self.time_s
+            self._peak_db = max(self._peak_db, level)
         if self.time_s - self._last_speech_s >= self.min_silence_s:
             return self._close(truncated=False)
         if self.time_s - self._start_s >= self.max_utterance_s:
@@ -375,7 +405,7 @@ class VoiceActivitySegmenter:
         return None
 
     def _close(self, truncated: bool) -> Utterance | None:
-        parts, self._parts = self._parts, None
+        parts, self._parts, self._peak_db = self._parts, None, -np.inf
         if self._last_speech_s - self._start_s < self.min_speech_s:
             self.dropped += 1
             return None
