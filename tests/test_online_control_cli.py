@@ -27,8 +27,8 @@ def test_online_control_runs_any_sb3_model_and_warns_on_another_task_family(algo
     env.close()
     (tmp_path / "model.json").write_text(json.dumps({"env_id": "VAFN/ThreeArmReachHidden-v1"}))
     with pytest.warns(UserWarning, match="targets: trained with 'per_arm', running with 'default'"):
-        online_control.main(["--model", str(tmp_path / "model.zip"), "--schedule", "0:1", "--steps", "20",
-                             "--out", str(tmp_path / "out")])
+        online_control.main(["--model", str(tmp_path / "model.zip"), "--trust-remote-code", "--schedule", "0:1",
+                             "--steps", "20", "--out", str(tmp_path / "out")])
     assert (tmp_path / "out" / "online_log.csv").read_text().count("\n") == 2, "one instruction logged"
 
 
@@ -47,10 +47,10 @@ def test_online_control_infers_hidden_targets_for_a_goal_observing_model(
     import gymnasium as gym
 
     import vafn_gym  # noqa: F401
-    from vafn_sb3 import SAC
+    from vafn_sb3 import SAC, save_weights
 
     env = gym.make("VAFN/ThreeArmReachGoal-v1", max_length=1)
-    SAC("MlpPolicy", env, policy_kwargs={"net_arch": [16, 16]}, seed=0).save(tmp_path / "goal.zip")
+    save_weights(SAC("MlpPolicy", env, policy_kwargs={"net_arch": [16, 16]}, seed=0), tmp_path / "goal.zip")
     env.close()
     (tmp_path / "goal.json").write_text(json.dumps({"env_id": "VAFN/ThreeArmReachGoal-v1"}))
     common = ["--schedule", "0:1", "--steps", "20", "--targets", "per_arm", "--out", str(tmp_path / "out")]

@@ -31,6 +31,9 @@ EXAMPLE_REST = (("image", (1, 3)), ("code", (3, 2)))
 EXAMPLE_NO_SPEECH = (("code", (2, 3, 1)), ("image", (1, 3)), ("image", (3, 2)))
 #: Steps the video keeps running after the last instruction settled (so its final state is visible).
 TAIL_STEPS = 24
+#: Video frame sides (pixels) --size accepts.
+MIN_FRAME_SIDE = 16
+MAX_FRAME_SIDE = 1920
 #: While the arms are idle and an input is still being read, wait (poll period, s) instead of spending control steps
 #: (the simulation runs faster than real time, so a slow first transcription would otherwise use up --max-steps),
 #: at most this long (s) per input.
@@ -207,12 +210,13 @@ def builtin_example(folder: Path, speech: bool | None = None) -> list[DemoInput]
     return inputs
 
 
-def load_policy(policy: str = "sac", model_path: str | None = None) -> Any:
-    """The packaged policy of algorithm ``policy``, or any saved SB3 model at ``model_path``."""
+def load_policy(policy: str = "sac", model_path: str | None = None, trust_remote_code: bool = False) -> Any:
+    """The packaged policy of algorithm ``policy``, or the saved model at ``model_path`` (a weights-only file, or an
+    SB3 zip with ``trust_remote_code``: see :func:`vafn_sb3.loading.load_model`)."""
     if model_path is not None:
         from vafn_sb3.loading import load_model
 
-        return load_model(model_path)[0]
+        return load_model(model_path, trust_remote_code=trust_remote_code)[0]
     from vafn_sb3 import load_pretrained
 
     return load_pretrained(policy)
@@ -464,7 +468,10 @@ def format_outcome(outcome: Outcome, fps: float) -> str:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface (defaults shown in --help)."""
-    parser = argparse.ArgumentParser(
+    from vafn_media.cli import OneLineParser
+    from vafn_sb3.loading import add_trust_flag
+
+    parser = OneLineParser(
         prog="vafn-demo", description=__doc__.split("\n\n")[0],
         epilog="Example: vafn-demo --audio cmd.wav --image card.png --code 3,2 --out runs/demo",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
@@ -479,7 +486,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="a folder of mixed inputs, run in file-name order (.txt files hold machine code)")
     parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="folder for the video, timeline, CSV")
     parser.add_argument("--policy", default="sac", help="packaged pretrained policy (algorithm key)")
-    parser.add_argument("--model", default=None, help="a saved SB3 model (.zip) to run instead of the packaged one")
+    parser.add_argument("--model", default=None,
+                        help="a saved model to run instead of the packaged one: a weights-only file "
+                             "(vafn_sb3.save_weights), or an SB3 .zip with --trust-remote-code")
+    add_trust_flag(parser)
     parser.add_argument("--checkpoint", default=None, help="instruction model (.pt); default: the packaged one")
     parser.add_argument("--interval", type=int, default=60, help="control steps between two submissions")
     parser.add_argument("--max-steps", type=int, default=3000, help="stop after this many control steps")
@@ -494,18 +504,38 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _fail(message: str) -> int:
+    """Print one error line (newlines folded) and return exit status 2."""
+    from vafn_media.cli import error_line
+
+    print(error_line("vafn-demo", message), end="", file=sys.stderr)
+    return 2
+
+
+def _writable_folder(out: Path) -> None:
+    """Create ``out`` (--out) or raise :class:`DemoInputError` saying why it cannot hold the outputs."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise DemoInputError(f"--out {out}: cannot create the folder ({error.strerror or error})") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise DemoInputError(f"--out {out}: the folder is not writable")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``vafn-demo``; returns the exit status (0 all succeeded, 1 some did not, 2 bad input)."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.interval < 0 or args.max_steps < 1 or args.frame_skip < 1 or min(args.size) < 16:
-        parser.error("need --interval >= 0, --max-steps >= 1, --frame-skip >= 1 and --size of at least 16 16")
+    if args.interval < 0 or args.max_steps < 1 or args.frame_skip < 1:
+        parser.error("need --interval >= 0, --max-steps >= 1 and --frame-skip >= 1")
+    if not all(MIN_FRAME_SIDE <= side <= MAX_FRAME_SIDE for side in args.size):
+        parser.error(f"--size {args.size[0]} {args.size[1]}: each side must be {MIN_FRAME_SIDE} to {MAX_FRAME_SIDE}")
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     try:
+        _writable_folder(args.out)
         inputs = expand_inputs(args.inputs)
     except DemoInputError as error:
-        print(f"vafn-demo: error: {error}", file=sys.stderr)
-        return 2
+        return _fail(str(error))
     import torch
 
     torch.set_num_threads(1)
@@ -518,10 +548,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         from vafn_media import InstructionGenerator
 
         generator = InstructionGenerator.load(args.checkpoint)
-        model = load_policy(args.policy, args.model)
-    except (ValueError, FileNotFoundError) as error:
-        print(f"vafn-demo: error: {error}", file=sys.stderr)
-        return 2
+        model = load_policy(args.policy, args.model, args.trust_remote_code)
+    except (ValueError, OSError) as error:
+        return _fail(str(error))
+    except MemoryError:
+        return _fail(f"loading {args.model or args.policy} needs more memory than this machine has")
     result = run_demo(inputs, args.out, model=model, generator=generator, interval=args.interval,
                       max_steps=args.max_steps, width=args.size[0], height=args.size[1], frame_skip=args.frame_skip,
                       video=args.video, min_confidence=args.min_confidence, seed=args.seed)

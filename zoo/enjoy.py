@@ -27,12 +27,14 @@ if str(REPO_ROOT) not in sys.path:
 
 import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
+import yaml  # noqa: E402
 from huggingface_sb3 import EnvironmentName  # noqa: E402
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import vafn_gym  # noqa: E402
 from vafn_gym.overlay import VIDEO_SUFFIXES, FrameOverlay, VideoWriter  # noqa: E402
+from vafn_media.cli import OneLineParser  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 from zoo.run_config import load_run_config  # noqa: E402
 
@@ -42,7 +44,10 @@ def load_run(algo: str, env_id: str, folder: str, exp_id: int, load_best: bool) 
 
     algo_class = require_algorithm(algo)
     env_name = EnvironmentName(env_id)
-    _, model_path, log_path = get_model_path(exp_id, folder, algo, env_name, load_best)
+    try:
+        _, model_path, log_path = get_model_path(exp_id, folder, algo, env_name, load_best)
+    except AssertionError as error:  # rl_zoo3 asserts that the run folder exists
+        raise ValueError(f"-f {folder} --algo {algo}: {error}") from None
     config_path = Path(log_path) / str(env_name) / "config.yml"
     env_kwargs: dict = {}
     if config_path.is_file():
@@ -158,8 +163,8 @@ def evaluate_held_out(policy: Any, env_id: str, env_kwargs: dict, n_test: int) -
 
 def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     """Command-line entry point; returns the per-episode results."""
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    parser = OneLineParser(
+        prog="enjoy.py", description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         epilog="Example: python zoo/enjoy.py --pretrained sac --instruction 2,3,1,3 --record runs/enjoy/sac.mp4",
     )
     parser.add_argument("--algo", default="sac", help="zoo algorithm key of the trained agent (with -f)")
@@ -188,6 +193,14 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         parser.error("-n, --n-episodes and --frame-skip must be >= 1")
     if args.render_mode == "human" and not os.environ.get("DISPLAY"):
         parser.error("--render-mode human needs a display; use --record out.gif on a headless machine")
+    try:
+        return _run_main(args)
+    except (ValueError, OSError, yaml.YAMLError) as error:  # bad input: one line, exit 2
+        parser.fail(error)
+
+
+def _run_main(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """:func:`main` after parsing; bad input raises ``ValueError`` / ``OSError``."""
     register_algorithms()
     stats = None
     env_kwargs: dict = {}
@@ -199,7 +212,10 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         policy, env_kwargs, stats = load_run(args.algo, args.env, args.folder, args.exp_id, args.load_best)
     for item in args.env_kwargs:
         key, _, value = item.partition(":")
-        env_kwargs[key] = eval(value)  # same convention as the zoo's --env-kwargs
+        try:
+            env_kwargs[key] = eval(value)  # same convention as the zoo's --env-kwargs (the user's own text)
+        except Exception as error:  # noqa: BLE001 - any error of the expression is a bad argument
+            raise ValueError(f"--env-kwargs {item!r}: {type(error).__name__}: {error}") from None
     if args.scripted:
         probe = gym.make(args.env, **env_kwargs)
         policy = vafn_gym.ScriptedController.for_env(probe)

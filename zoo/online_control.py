@@ -44,7 +44,8 @@ from vafn_gym import TARGET_MODES, RandomPolicy, ScriptedController  # noqa: E40
 from vafn_gym.files import write_csv_rows  # noqa: E402
 from vafn_gym.queue import PoissonArrivals, ScheduledArrivals  # noqa: E402
 from vafn_sb3 import load_pretrained, pretrained_info  # noqa: E402
-from vafn_sb3.loading import family_mismatch, load_model, training_env, training_seed  # noqa: E402
+from vafn_media.cli import OneLineParser  # noqa: E402
+from vafn_sb3.loading import add_trust_flag, family_mismatch, load_model, training_env, training_seed  # noqa: E402
 from vafn_sb3.online import InstructionLog, OnlineController  # noqa: E402
 from vafn_sb3.target_inference import (  # noqa: E402
     ESTIMATOR_MODES,
@@ -112,17 +113,20 @@ def append_run(table: Path, log: list[InstructionLog], label: str, model_seed: i
 def main(argv: list[str] | None = None) -> None:
     """Parse arguments, run the controller for ``--steps`` steps, write ``online_log.csv`` and
     ``online_distances.png``."""
-    parser = argparse.ArgumentParser(
-        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    parser = OneLineParser(
+        prog="online_control.py", description=__doc__.splitlines()[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         epilog='Example: python zoo/online_control.py --pretrained sac --schedule "0:2,3,1;10:1,2" --steps 600',
     )
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--model", type=Path,
-                        help="any saved SB3 model with predict (.zip: SAC, MTSAC, MAML-SAC, MAAC, ...)")
+                        help="a saved model: a weights-only file (vafn_sb3.save_weights), or any SB3 .zip (SAC, "
+                             "MTSAC, MAML-SAC, MAAC, ...) with --trust-remote-code")
     source.add_argument("--policy", choices=["scripted", "random"], help="a reference policy instead of a model")
     source.add_argument("--pretrained", help="a packaged policy by algorithm (e.g. sac): no training needed")
     parser.add_argument("--algo", default=None,
                         help="algorithm of --model when it cannot be told from the file (None: detected)")
+    add_trust_flag(parser)
     arrivals = parser.add_mutually_exclusive_group(required=True)
     arrivals.add_argument("--schedule", type=parse_schedule, help="scripted arrivals 'STEP:INSTR;STEP:INSTR'")
     arrivals.add_argument("--poisson-rate", type=float, help="random arrivals per step, instructions from --split")
@@ -174,45 +178,51 @@ def main(argv: list[str] | None = None) -> None:
                     args.model_seed = 0  # a reference policy
             read_table(args.append_to)  # before the run, not after it
         except ValueError as error:
-            parser.exit(2, f"online_control.py: error: {error}\n")
+            parser.fail(error)
         for name, value in (("--label", args.label), ("--model-seed", args.model_seed)):
             if value is None:
-                parser.exit(2, f"online_control.py: error: --append-to needs {name} (it cannot be told from the "
-                               "other arguments)\n")
+                parser.fail(f"--append-to needs {name} (it cannot be told from the other arguments)")
     torch.set_num_threads(1)
-
-    env = gym.make(
-        "VAFN/ThreeArmStream-v1", arrivals=None, auto_dequeue=False, horizon=args.steps, targets=args.targets,
-        split=args.split, max_length=args.max_length,
-    )
-    stream = env.unwrapped
-    if args.schedule is not None:
-        stream.arrival_process = ScheduledArrivals(args.schedule)
-    else:
-        stream.arrival_process = PoissonArrivals(args.poisson_rate, sampler=stream.sampler.sample, seed=args.seed)
+    if args.steps < 1:
+        parser.error(f"--steps must be >= 1, got {args.steps}")
+    try:
+        args.out.mkdir(parents=True, exist_ok=True)
+        env = gym.make(
+            "VAFN/ThreeArmStream-v1", arrivals=None, auto_dequeue=False, horizon=args.steps, targets=args.targets,
+            split=args.split, max_length=args.max_length,
+        )
+        stream = env.unwrapped
+        if args.schedule is not None:  # every instruction checked against the env's arms before the run starts
+            stream.arrival_process = ScheduledArrivals(args.schedule, n_arms=stream.n_arms)
+        else:
+            stream.arrival_process = PoissonArrivals(args.poisson_rate, sampler=stream.sampler.sample, seed=args.seed)
+    except OSError as error:
+        parser.fail(f"--out {args.out}: {error.strerror or error}")
+    except ValueError as error:
+        parser.fail(error)
     trained: tuple[str | None, dict] = (None, {})
     if args.pretrained is not None:
         trained = (pretrained_env, {})
         try:
             model = load_pretrained(args.pretrained, env_id=trained[0])
         except ValueError as error:
-            parser.exit(2, f"online_control.py: error: {error}\n")
+            parser.fail(error)
     elif args.model is not None:
         try:
-            model, algo = load_model(args.model, args.algo)
-        except (ValueError, FileNotFoundError) as error:
-            parser.exit(2, f"online_control.py: error: {error}\n")
+            model, algo = load_model(args.model, args.algo, trust_remote_code=args.trust_remote_code)
+            trained = training_env(args.model)
+        except (ValueError, OSError) as error:
+            parser.fail(error)
         print(f"loaded {args.model} as {type(model).__name__} ({algo})")
-        trained = training_env(args.model)
     elif args.policy == "scripted":
         model = ScriptedController.for_env(env)
     else:
         model = RandomPolicy(env.action_space, args.seed)
     if args.target_estimator is not None and args.infer_targets not in ESTIMATOR_MODES:
-        parser.exit(2, "online_control.py: error: --target-estimator needs --infer-targets learned or gradient\n")
+        parser.fail("--target-estimator needs --infer-targets learned or gradient")
     if args.infer_targets is not None:
         if args.policy is not None:
-            parser.exit(2, "online_control.py: error: --infer-targets needs --model or --pretrained\n")
+            parser.fail("--infer-targets needs --model or --pretrained")
         try:
             estimator = None if args.target_estimator is None else load_estimator(args.infer_targets,
                                                                                    args.target_estimator)
@@ -220,12 +230,12 @@ def main(argv: list[str] | None = None) -> None:
             model = inference_policy_for_env(model, env, args.infer_targets, estimator,
                                              refine_steps=args.refine_steps, refine_solver=args.refine_solver)
         except ValueError as error:
-            parser.exit(2, f"online_control.py: error: {error}\n")
+            parser.fail(error)
     if args.policy is None:
         expected = env.observation_space.shape
         if getattr(model, "observation_space", None) is not None and model.observation_space.shape != expected:
-            parser.exit(2, f"online_control.py: error: the model observes {model.observation_space.shape}, the "
-                           f"stream env gives {expected}: it was trained on another task family\n")
+            parser.fail(f"the model observes {model.observation_space.shape}, the stream env gives {expected}: it "
+                        "was trained on another task family")
         observed = {"targets": args.targets, "observe_goal": args.infer_targets is not None}
         for difference in family_mismatch(*trained, "VAFN/ThreeArmStream-v1", observed):
             warnings.warn(f"the model was trained on {trained[0]} and runs on VAFN/ThreeArmStream-v1 with another "
