@@ -6,7 +6,9 @@ from __future__ import annotations
 import random
 import threading
 import time
+from collections import Counter
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import gymnasium as gym
 import numpy as np
@@ -16,6 +18,7 @@ import vafn_gym  # noqa: F401  (registers the env IDs)
 from vafn_gym import ScriptedController
 from vafn_gym.queue import DROPPED_HISTORY, InstructionQueue, PoissonArrivals, QueuedInstruction, QueueFullError
 from vafn_gym.queue import ScheduledArrivals
+from vafn_media.stream import MultimediaStream, StreamEvent
 from vafn_sb3.online import OnlineController
 
 STREAM = "VAFN/ThreeArmStream-v1"
@@ -226,3 +229,95 @@ def test_reset_with_an_instruction_option_changes_nothing():
     assert state() == before and before[1] is not None  # an instruction was running and still is
     assert all(np.array_equal(positions[arm], p) for arm, p in stream._positions().items())  # arms were not homed
     env.close()
+
+
+# --- MultimediaStream.stop ---
+class _CodeReader:
+    """Reads ``code=`` like the generator's code path; ``delay`` seconds per request."""
+
+    def __init__(self, delay: float = 0.0) -> None:
+        self.delay = delay
+
+    def transcribe(self, audio=None, image=None, code=None, sample_rate=None):
+        time.sleep(self.delay)
+        from vafn_gym.instructions import Instruction
+
+        return SimpleNamespace(instruction=Instruction.coerce(code), confidence=1.0, confidences=(1.0,),
+                               low_confidence=False, method="code", warnings=(), modalities=("code",))
+
+
+def _in_thread(call, timeout: float = 5.0) -> float:
+    """Run ``call`` on a thread and return its duration; fail (instead of hanging) past ``timeout``."""
+    thread = threading.Thread(target=call, daemon=True)
+    started = time.perf_counter()
+    thread.start()
+    thread.join(timeout)
+    assert not thread.is_alive(), f"{call} did not return within {timeout} s"
+    return time.perf_counter() - started
+
+
+def _statuses(stream: MultimediaStream) -> Counter:
+    tickets = [event.ticket for event in stream.events]
+    assert len(tickets) == len(set(tickets)), "a request got two events"
+    return Counter(event.status for event in stream.events)
+
+
+@pytest.mark.parametrize("drain", [True, False])
+def test_stop_from_its_own_callback_returns_and_every_request_gets_an_event(drain):
+    returned: list[float] = []
+
+    def on_event(event: StreamEvent) -> None:
+        if event.ticket == 0:
+            started = time.perf_counter()
+            stream.stop(drain=drain)
+            returned.append(time.perf_counter() - started)
+
+    queue = InstructionQueue()
+    stream = MultimediaStream(queue, _CodeReader(delay=0.01), on_event=on_event).start()
+    tickets = [stream.submit(code="1") for _ in range(20)]
+    deadline = time.perf_counter() + 5.0
+    while stream.alive and time.perf_counter() < deadline:
+        time.sleep(0.01)
+    assert not stream.alive, "the worker did not wind down after stop() in its callback"
+    assert returned and returned[0] < 0.5
+    late = stream.submit(code="2")  # after the stop: answered at once, never left pending
+    assert sorted(event.ticket for event in stream.events) == tickets + [late]
+    counts = _statuses(stream)
+    assert counts["cancelled"] == (1 if drain else 20)
+    assert counts["enqueued"] == len(queue) == (20 if drain else 1)
+    assert stream.wait(timeout=0) is True
+
+
+def test_stop_without_drain_cancels_every_pending_request():
+    queue = InstructionQueue()
+    stream = MultimediaStream(queue, _CodeReader(delay=0.02)).start()
+    for _ in range(100):
+        stream.submit(code="3")
+    assert _in_thread(lambda: stream.stop(drain=False, timeout=5.0)) < 1.0
+    counts = _statuses(stream)
+    assert sum(counts.values()) == 100 and counts["cancelled"] >= 90
+    assert counts["enqueued"] == len(queue) and not stream.alive
+
+
+def test_stop_with_an_expired_drain_timeout_cancels_the_rest():
+    stream = MultimediaStream(InstructionQueue(), _CodeReader(delay=0.02)).start()
+    for _ in range(50):
+        stream.submit(code="1")
+    _in_thread(lambda: stream.stop(timeout=0.1))
+    deadline = time.perf_counter() + 5.0
+    while stream.alive and time.perf_counter() < deadline:
+        time.sleep(0.01)
+    counts = _statuses(stream)
+    assert sum(counts.values()) == 50 and counts["cancelled"] > 0 and counts["enqueued"] > 0
+
+
+def test_a_never_started_stream_cancels_on_stop_and_restarts():
+    stream = MultimediaStream(InstructionQueue(), _CodeReader())
+    stream.submit(code="1")
+    _in_thread(stream.stop)
+    assert [event.status for event in stream.events] == ["cancelled"]
+    stream.start()
+    stream.submit(code="2")
+    assert stream.wait(timeout=5.0)
+    stream.stop()
+    assert [event.status for event in stream.events] == ["cancelled", "enqueued"]

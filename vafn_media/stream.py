@@ -32,8 +32,9 @@ class StreamEvent:
     """What happened to one submitted request.
 
     :param ticket: the id returned by :meth:`MultimediaStream.submit`.
-    :param status: "enqueued", "rejected" (low confidence), or "error" (bad input, full queue, …).
-    :param message: the reason for a rejection or an error ("" when enqueued).
+    :param status: "enqueued", "rejected" (low confidence), "error" (bad input, full queue, …) or "cancelled"
+        (the stream stopped before handling it).
+    :param message: the reason for a rejection, an error or a cancellation ("" when enqueued).
     :param transcription: the generator's result, when there was one.
     :param latency_s: submit -> enqueue (or -> failure) wall time, seconds.
     """
@@ -61,7 +62,8 @@ class MultimediaStream:
     ``confidences``, ``method``, ``warnings`` and ``ticket``. Results below ``min_confidence`` are not enqueued but
     reported as "rejected"; bad input and a full queue are reported as "error". The thread never dies: not on bad
     input, and not on a generator or ``on_event`` callback that raises (even ``SystemExit`` or ``KeyboardInterrupt``);
-    such failures are kept in :attr:`errors`.
+    such failures are kept in :attr:`errors`. Every submitted request gets exactly one event: a request the stream
+    stops before handling, or one submitted after :meth:`stop`, is reported as "cancelled".
 
     :param instruction_queue: the destination ``vafn_gym.queue.InstructionQueue``.
     :param generator: the generator (default: the packaged checkpoint).
@@ -69,7 +71,8 @@ class MultimediaStream:
         generator's own ``low_confidence`` threshold, so a generator loaded with a looser one is not overruled).
     :param reject_flagged: also reject results the generator flagged ``low_confidence`` (warnings, disagreement);
         with False they are enqueued and the flag stays in the metadata.
-    :param on_event: optional callback called (on the worker thread) with every :class:`StreamEvent`.
+    :param on_event: optional callback called with every :class:`StreamEvent`, on the worker thread (a cancellation
+        outside the worker: on the thread calling :meth:`stop` or :meth:`submit`). It may call :meth:`stop`.
     :param max_pending: bound of the request backlog; ``submit`` raises ``queue.Full`` beyond it.
     """
 
@@ -98,31 +101,55 @@ class MultimediaStream:
         self.errors: list[str] = []
         self._requests: _queue.Queue[_Request] = _queue.Queue(max_pending)
         self._tickets = itertools.count()
-        self._stop = threading.Event()
+        self._stop = threading.Event()  # cancel what is pending and exit (after the request in hand)
+        self._closed = False  # stop() was called: no new request is accepted, the worker exits once the backlog is gone
+        self._submit_lock = threading.Lock()  # orders submit() against stop(), so no request slips past the worker
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
 
     # --- lifecycle ---
     def start(self) -> MultimediaStream:
-        """Start the worker thread (idempotent)."""
-        if self._thread is None or not self._thread.is_alive():
+        """Start the worker thread (idempotent); after :meth:`stop` it starts a new one and accepts requests again."""
+        if self.alive and not self._closed:
+            return self
+        if self._on_worker():
+            raise RuntimeError("MultimediaStream.start() cannot restart the stream from its own worker (on_event)")
+        if self._thread is not None:
+            self._thread.join()  # a stopping worker: let it settle its backlog first
+        with self._submit_lock:
+            self._closed = False
             self._stop.clear()
             self._thread = threading.Thread(target=self._run, name="vafn-multimedia-stream", daemon=True)
             self._thread.start()
         return self
 
     def stop(self, drain: bool = True, timeout: float | None = None) -> None:
-        """Stop the worker; with ``drain`` it first finishes every pending request. Returns at once if never started.
+        """Stop accepting requests and stop the worker; safe from any thread, ``on_event`` callbacks included.
 
-        :param drain: process the backlog before stopping (only while the worker is running).
-        :param timeout: seconds to wait in all (draining and joining), ``None`` for no limit.
+        Every pending request still gets an event: with ``drain`` the worker handles the backlog first, otherwise (or
+        once ``timeout`` has passed) the pending requests are reported "cancelled"; a request being transcribed
+        finishes. Called from the worker itself (an ``on_event`` callback) it returns at once and the worker winds down
+        after the callback. A stream that was never started cancels its pending requests here.
+
+        :param drain: handle the backlog before stopping.
+        :param timeout: seconds to wait for draining and the worker's exit, ``None`` for no limit.
         """
-        deadline = None if timeout is None else time.perf_counter() + timeout
-        if drain and self.alive:
-            self.wait(timeout)
-        self._stop.set()
+        with self._submit_lock:
+            self._closed = True
+        if not drain:
+            self._stop.set()
+        if self._on_worker():
+            return
         if self._thread is not None:
-            self._thread.join(None if deadline is None else max(0.0, deadline - time.perf_counter()))
+            self._thread.join(timeout)
+            if self._thread.is_alive():  # the drain ran out of time: cancel the rest, finish the request in hand
+                self._stop.set()
+        if not self.alive:
+            self._cancel_pending()
+
+    def _on_worker(self) -> bool:
+        """Whether the caller runs on the worker thread (e.g. inside ``on_event``)."""
+        return self._thread is not None and threading.current_thread() is self._thread
 
     def __enter__(self) -> MultimediaStream:
         return self.start()
@@ -148,19 +175,25 @@ class MultimediaStream:
         """
         ticket = next(self._tickets)
         kwargs = {"audio": audio, "image": image, "code": code, "sample_rate": sample_rate}
-        self._requests.put_nowait(_Request(ticket, time.perf_counter(), kwargs, dict(metadata or {})))
+        request = _Request(ticket, time.perf_counter(), kwargs, dict(metadata or {}))
+        with self._submit_lock:
+            if not self._closed:
+                self._requests.put_nowait(request)
+                return ticket
+        self._record(self._cancelled(request))  # on the caller's thread: the worker is stopping or gone
         return ticket
 
     def wait(self, timeout: float | None = None) -> bool:
         """Block until every submitted request was handled (or ``timeout`` seconds passed); True when drained.
 
-        Returns at once when the worker is not running (never started, or stopped): True only if nothing is pending.
+        Returns at once when the worker is not running (never started, or stopped), or when called from the worker
+        itself (an ``on_event`` callback): True only if nothing is pending.
 
         :param timeout: seconds, None for no limit.
         """
         deadline = None if timeout is None else time.perf_counter() + timeout
         while self._requests.unfinished_tasks:
-            if not self.alive or (deadline is not None and time.perf_counter() > deadline):
+            if not self.alive or self._on_worker() or (deadline is not None and time.perf_counter() > deadline):
                 return False
             time.sleep(0.005)
         return True
@@ -204,16 +237,38 @@ class MultimediaStream:
                                time.perf_counter() - request.submitted_at)
         return StreamEvent(request.ticket, "enqueued", "", result, latency)
 
+    def _cancelled(self, request: _Request) -> StreamEvent:
+        """The event of a request the stream will not handle because it was stopped."""
+        return StreamEvent(request.ticket, "cancelled", "the stream was stopped before handling it",
+                           latency_s=time.perf_counter() - request.submitted_at)
+
+    def _cancel_pending(self) -> None:
+        """Report every request still waiting as "cancelled" and take it off the backlog."""
+        while True:
+            try:
+                request = self._requests.get_nowait()
+            except _queue.Empty:
+                return
+            try:
+                self._record(self._cancelled(request))
+            finally:
+                self._requests.task_done()
+
+    def _finished(self) -> bool:
+        """Whether the worker may exit: told to stop, or closed with an empty backlog (nothing can be added then)."""
+        return self._stop.is_set() or (self._closed and self._requests.empty())
+
     def _run(self) -> None:
-        while not self._stop.is_set():
+        while not self._finished():
             try:
                 request = self._requests.get(timeout=_POLL_SECONDS)
             except _queue.Empty:
                 continue
             try:
-                self._record(self._handle(request))
+                self._record(self._cancelled(request) if self._stop.is_set() else self._handle(request))
             except BaseException as error:  # noqa: BLE001 - last line of defence: the worker must outlive anything
                 self._error(f"ticket {request.ticket}: {_describe(error)}")
                 self._record(StreamEvent(request.ticket, "error", _describe(error)))
             finally:
                 self._requests.task_done()
+        self._cancel_pending()
