@@ -4,8 +4,10 @@ Each input (``--audio``, ``--image``, ``--code``, in command-line order) is subm
 :class:`vafn_media.MultimediaStream`, which transcribes it on a background thread into the Dynamic Instruction Queue of
 ``VAFN/ThreeArmStream-v1`` while :class:`vafn_sb3.OnlineController` runs the packaged pretrained policy on the arms.
 Writes a labelled video (MP4, or GIF without imageio-ffmpeg) and a PNG timeline into ``--out`` and prints each
-instruction's outcome and latency. Without inputs it runs a built-in example. Exit status: 0 every instruction
-succeeded, 1 some were rejected or failed, 2 bad input.
+instruction's outcome and latency. ``--listen`` takes spoken commands live instead (a microphone, a recording replayed
+in real time, or 16-bit PCM on stdin), each utterance found by :mod:`vafn_media.listen` as it ends. Without inputs it
+runs a built-in example. Exit status: 0 every instruction succeeded, 1 some were rejected or failed (or none was
+heard), 2 bad input.
 """
 
 from __future__ import annotations
@@ -225,7 +227,7 @@ def load_policy(policy: str = "sac", model_path: str | None = None, trust_remote
 def run_demo(
     inputs: Sequence[DemoInput], out: Path, model: Any = None, generator: Any = None, interval: int = 60,
     max_steps: int = 3000, width: int = 400, height: int = 300, frame_skip: int = 4, video: str = "auto",
-    min_confidence: float | None = None, seed: int = 0, progress: bool = True,
+    min_confidence: float | None = None, seed: int = 0, progress: bool = True, listener: Any = None,
 ) -> DemoResult:
     """Feed ``inputs`` through the multimedia stream into the queue while the controller moves the arms.
 
@@ -242,6 +244,8 @@ def run_demo(
     :param min_confidence: transcriptions below it are rejected (default: the stream's threshold).
     :param seed: seed of the stream env.
     :param progress: show a progress bar.
+    :param listener: a :class:`vafn_media.listen.Listener`, not started: each utterance it hears is submitted as an
+        audio input at once (``inputs`` may be empty); the run ends when its source ends (Ctrl-C for a microphone).
     """
     import gymnasium as gym
     from tqdm import tqdm
@@ -251,8 +255,9 @@ def run_demo(
     from vafn_media import MultimediaStream
     from vafn_sb3.online import OnlineController
 
-    if not inputs:
+    if not inputs and listener is None:
         raise DemoInputError("no inputs to run")
+    inputs = list(inputs)
     if interval < 0 or max_steps < 1 or frame_skip < 1:
         raise ValueError(f"need interval >= 0, max_steps >= 1, frame_skip >= 1; got {interval}, {max_steps}, "
                          f"{frame_skip}")
@@ -292,11 +297,16 @@ def run_demo(
     overlay = FrameOverlay(env)
     submitted_at: dict[int, float] = {}
     started = time.perf_counter()
-    step, tail, next_input = 0, None, 0
-    bar = tqdm(total=len(inputs), desc="vafn-demo", unit="instruction", disable=not progress)
+    step, tail, next_input, heard = 0, None, 0, 0
+    bar = tqdm(total=len(inputs) or None, desc="vafn-demo", unit="instruction", disable=not progress)
+    if listener is not None:
+        listener.start()
     try:
         while step < max_steps:
-            while next_input < len(inputs) and step >= next_input * interval:
+            listening = listener is not None and not listener.finished  # before taking: no utterance is missed
+            if listener is not None:
+                heard = _take_utterances(listener, heard, inputs, outcomes)
+            while next_input < len(inputs) and (listener is not None or step >= next_input * interval):
                 item = inputs[next_input]
                 outcome = outcomes[next_input]
                 ticket = media.submit(**{item.kind: item.value}, metadata={"input": next_input + 1})
@@ -304,7 +314,8 @@ def run_demo(
                 outcome.submit_step, outcome.status = step, "transcribing"
                 submitted_at[next_input] = time.perf_counter()
                 next_input += 1
-            if _arms_wait_for_reader(outcomes, submitted_at):
+            idle = not any(o.status in ("queued", "running") for o in outcomes)
+            if _arms_wait_for_reader(outcomes, submitted_at) or (listening and idle):
                 time.sleep(READER_POLL_S)
                 continue
             info = controller.step()
@@ -315,11 +326,16 @@ def run_demo(
             settled = sum(o.status not in ("pending", "transcribing", "queued", "running") for o in outcomes)
             if settled != bar.n:
                 bar.update(settled - bar.n)
-            if tail is None and next_input == len(inputs) and settled == len(outcomes):
+            if tail is None and next_input == len(inputs) and settled == len(outcomes) and not listening:
                 tail = step + TAIL_STEPS
             if tail is not None and step >= tail:
                 break
+    except KeyboardInterrupt:  # Ctrl-C ends listening to a microphone; the report follows
+        if listener is None:
+            raise
     finally:
+        if listener is not None:
+            listener.stop()
         bar.close()
         media.stop(drain=False, timeout=5.0)
         frames = writer.n_frames if writer is not None else 0
@@ -334,6 +350,16 @@ def run_demo(
     write_outcomes(outcomes, out / "outcomes.csv")
     errors = list(controller.errors) + list(media.errors)
     return DemoResult(outcomes, video_path, timeline, step, time.perf_counter() - started, frames, errors)
+
+
+def _take_utterances(listener: Any, taken: int, inputs: list[DemoInput], outcomes: list[Outcome]) -> int:
+    """Append the utterances the listener heard after the first ``taken`` as audio inputs; returns how many it heard."""
+    utterances = list(listener.utterances)
+    for utterance in utterances[taken:]:
+        label = f"heard {utterance.start_s:.1f}-{utterance.end_s:.1f} s"
+        inputs.append(DemoInput("audio", (utterance.waveform, utterance.rate), label))
+        outcomes.append(Outcome(len(outcomes) + 1, "audio", label))
+    return len(utterances)
 
 
 def _update_from_log(log: Sequence[Any], enqueued: Sequence[Outcome], submitted_at: dict[int, float],
@@ -499,6 +525,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--frame-skip", type=int, default=4, help="keep every N-th control step as a frame")
     parser.add_argument("--min-confidence", type=float, default=None,
                         help="reject transcriptions below this confidence (default: the stream's 0.5)")
+    parser.add_argument("--listen", nargs="?", const="mic", default=None, metavar="FILE",
+                        help="spoken commands live: from the microphone (needs sounddevice), a recording replayed in "
+                             "real time, or '-' for 16-bit 16 kHz mono PCM on stdin; each utterance is read as it ends")
     parser.add_argument("--no-speech", action="store_true", help="built-in example without synthesised speech")
     parser.add_argument("--seed", type=int, default=0, help="seed of the stream env")
     return parser
@@ -536,11 +565,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         inputs = expand_inputs(args.inputs)
     except DemoInputError as error:
         return _fail(str(error))
+    listener = None
+    if args.listen is not None:
+        from vafn_media.listen import Listener, LiveInputError, open_source
+
+        try:
+            listener = Listener(open_source(None if args.listen == "mic" else args.listen))
+        except LiveInputError as error:
+            return _fail(str(error))
     import torch
 
     torch.set_num_threads(1)
     started = time.perf_counter()
-    if not inputs:
+    if not inputs and listener is None:
         inputs = builtin_example(args.out / "inputs", speech=False if args.no_speech else None)
         print(f"no inputs given: running the built-in example ({', '.join(i.kind for i in inputs)}) "
               f"from {args.out / 'inputs'}")
@@ -555,19 +592,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _fail(f"loading {args.model or args.policy} needs more memory than this machine has")
     result = run_demo(inputs, args.out, model=model, generator=generator, interval=args.interval,
                       max_steps=args.max_steps, width=args.size[0], height=args.size[1], frame_skip=args.frame_skip,
-                      video=args.video, min_confidence=args.min_confidence, seed=args.seed)
+                      video=args.video, min_confidence=args.min_confidence, seed=args.seed, listener=listener)
     from vafn_gym.constants import N_SUBSTEPS, PHYSICS_DT
 
     for outcome in result.outcomes:
         print(format_outcome(outcome, 1.0 / (PHYSICS_DT * N_SUBSTEPS)))
-    for error in result.errors:
+    for error in result.errors + (listener.errors if listener is not None else []):
         print("error:", error)
     video = f"{result.video} ({result.frames} frames), " if result.video else ""
     print(f"wrote {video}{result.timeline} and {args.out / 'outcomes.csv'}")
     succeeded = sum(o.status == "completed" for o in result.outcomes)
     print(f"{succeeded}/{len(result.outcomes)} instructions completed without contact in {result.steps} control "
           f"steps; {time.perf_counter() - started:.1f} s in all (models loaded, video written)")
-    return 0 if result.all_succeeded else 1
+    return 0 if result.all_succeeded and result.outcomes else 1
 
 
 if __name__ == "__main__":
