@@ -462,6 +462,8 @@ def check_config_bounds(config: dict[str, Any], name: str, policy_bytes: int) ->
     errors += _count_errors(policy_kwargs, {"n_critics": MAX_CRITICS, "attend_heads": MAX_ATTENTION_HEADS},
                             "policy_kwargs")
     errors += _count_errors(hyperparameters, MAX_HYPERPARAMETERS, "hyperparameters")
+    errors += [f"{key} has {_space_size(config.get(key)):,} elements (at most {MAX_SPACE_SIZE})"
+               for key in ("observation_space", "action_space") if _space_size(config.get(key)) > MAX_SPACE_SIZE]
     errors = errors or _buffer_errors(config)
     if errors:
         raise ValueError(f"{name}: {'; '.join(errors[:3])} (refused before building the model)")
