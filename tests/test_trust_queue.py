@@ -12,6 +12,7 @@ from types import SimpleNamespace
 
 import gymnasium as gym
 import numpy as np
+import optuna
 import pytest
 
 import vafn_gym  # noqa: F401  (registers the env IDs)
@@ -321,3 +322,38 @@ def test_a_never_started_stream_cancels_on_stop_and_restarts():
     assert stream.wait(timeout=5.0)
     stream.stop()
     assert [event.status for event in stream.events] == ["cancelled", "enqueued"]
+
+
+# --- tuning reruns ---
+def test_rerunning_a_tuning_command_continues_with_new_parameters(tmp_path, monkeypatch):
+    from zoo.experiment import VAFNExperimentManager
+    from zoo.train import main as train_main
+    from zoo.tuning import make_off_policy_sampler, open_storage
+
+    sample = make_off_policy_sampler("sac", None)
+
+    def objective(self: VAFNExperimentManager, trial: optuna.Trial) -> float:
+        return float(sample(trial, 9, 1, {})["learning_rate"])  # the real search space, no training
+
+    monkeypatch.setattr(VAFNExperimentManager, "objective", objective)
+    storage = str(tmp_path / "study.log")
+    command = ["--algo", "sac", "--env", "VAFN/ThreeArmReach-v1", "-optimize", "--n-trials", "2", "-n", "100",
+               "-f", str(tmp_path), "--storage", storage, "--study-name", "s", "--no-optim-plots",
+               "--sampler", "random", "--seed", "1"]
+    train_main(command)
+    train_main(command)  # the interrupted command, run again as docs/tuning.md says
+    train_main(command)
+    trials = optuna.load_study(study_name="s", storage=open_storage(storage)).trials
+    params = [tuple(sorted(trial.params.items())) for trial in trials]
+    assert len(params) == 6 and len(set(params)) == 6, "a rerun drew parameters the study already had"
+    assert params[:2] == _first_run_params(tmp_path, command)  # the first run is still reproducible from its seed
+
+
+def _first_run_params(tmp_path, command: list[str]) -> list[tuple]:
+    from zoo.train import main as train_main
+    from zoo.tuning import open_storage
+
+    storage = str(tmp_path / "fresh.log")
+    train_main([*command[:command.index("--storage")], "--storage", storage, *command[command.index("--study-name"):]])
+    trials = optuna.load_study(study_name="s", storage=open_storage(storage)).trials
+    return [tuple(sorted(trial.params.items())) for trial in trials]

@@ -5,7 +5,8 @@
 * a sampled ``policy_kwargs`` is merged into the YAML's instead of replacing it (during ``-optimize`` and
   ``--trial-id``);
 * tuning defaults to a local journal file, tags each trial with its worker, and on restart marks trials left RUNNING by
-  a dead local worker as FAIL and re-queues their parameters, so a killed worker's study resumes cleanly;
+  a dead local worker as FAIL and re-queues their parameters, so a killed worker's study resumes cleanly; a rerun's
+  sampler seed advances with the trials already in the study, so it draws new parameters;
 * an RDB ``--storage`` URL (PostgreSQL, MySQL, SQLite) is opened with Optuna heartbeats
   (:func:`zoo.tuning.open_storage`) and the zoo's optimisation loop runs on that storage object, so a trial whose
   worker died on any host is failed and re-queued by the next worker;
@@ -30,7 +31,16 @@ from rl_zoo3.hyperparams_opt import HYPERPARAMS_SAMPLER
 from stable_baselines3.common.callbacks import EvalCallback
 
 from vafn_sb3.callbacks import RolloutCollisionCallback, SuccessCollisionEvalCallback
-from zoo.tuning import HEARTBEAT_INTERVAL_S, WORKER_ATTR, is_journal, open_storage, recover_stale_trials, worker_id
+from zoo.tuning import (
+    HEARTBEAT_INTERVAL_S,
+    WORKER_ATTR,
+    count_trials,
+    is_journal,
+    open_storage,
+    recover_stale_trials,
+    resumed_sampler_seed,
+    worker_id,
+)
 
 #: Monitor columns written for VAFN envs (success and "any collision this episode").
 VAFN_INFO_KEYWORDS = ("is_success", "collided")
@@ -175,6 +185,18 @@ class VAFNExperimentManager(ExperimentManager):
             return None
         return open_storage(self.storage, heartbeat_interval=self.heartbeat_interval, grace_period=self.heartbeat_grace)
 
+    #: Trials the study held when this worker joined it (seeds the sampler: :func:`zoo.tuning.resumed_sampler_seed`).
+    trials_before: int = 0
+
+    def _create_sampler(self, sampler_method: str) -> optuna.samplers.BaseSampler:
+        """The zoo's sampler, seeded so that a rerun on an existing study draws new parameters."""
+        seed = self.seed
+        self.seed = resumed_sampler_seed(seed, self.trials_before)
+        try:
+            return super()._create_sampler(sampler_method)
+        finally:
+            self.seed = seed
+
     def hyperparameters_optimization(self) -> None:
         """Recover trials of dead workers, then run the zoo's optimisation loop (on the heartbeat storage for RDB)."""
         storage = self.open_tuning_storage()
@@ -182,6 +204,7 @@ class VAFNExperimentManager(ExperimentManager):
             recovered = recover_stale_trials(storage, self.study_name)
             if recovered and self.verbose > 0:
                 print(f"Marked stale trials {recovered} (dead worker) as FAIL and re-queued their parameters")
+            self.trials_before = count_trials(storage, self.study_name)
         if storage is None or is_journal(self.storage):
             super().hyperparameters_optimization()  # the zoo opens the same journal file itself
             return

@@ -9,7 +9,8 @@ them), so a YAML ``activation_fn`` or custom policy argument survives tuning.
 
 Studies resume across worker restarts: each trial is tagged with its worker (host, pid and process start), and
 :func:`recover_stale_trials` fails and re-queues the RUNNING trials whose worker is gone; RDB storages opened by
-:func:`open_storage` also use Optuna's heartbeats, which cover workers on other hosts.
+:func:`open_storage` also use Optuna's heartbeats, which cover workers on other hosts. A rerun's sampler is seeded with
+:func:`resumed_sampler_seed`, so it continues the study with new parameters.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from pathlib import Path
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 import optuna
 from optuna.exceptions import UpdateFinishedTrialError
 from optuna.storages._heartbeat import is_heartbeat_enabled
@@ -335,6 +337,32 @@ def open_storage(
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         warnings.simplefilter("ignore", FutureWarning)  # RetryFailedTrialCallback's rename notice in Optuna >= 4.9
         return optuna.storages.RDBStorage(storage, **_heartbeat_kwargs(heartbeat_interval, grace_period, max_retry))
+
+
+def count_trials(storage: str | optuna.storages.BaseStorage, study_name: str) -> int:
+    """How many trials (any state) the study already holds; 0 when it does not exist yet."""
+    if isinstance(storage, str):
+        storage = open_storage(storage)
+    try:
+        study = optuna.load_study(study_name=study_name, storage=storage)
+    except KeyError:
+        return 0
+    return len(study.get_trials(deepcopy=False))
+
+
+def resumed_sampler_seed(seed: int | None, n_trials: int) -> int | None:
+    """The sampler seed of a worker that joins a study already holding ``n_trials`` trials.
+
+    ``seed`` itself for a new study (a fresh run stays reproducible); otherwise a seed derived from
+    ``(seed, n_trials)``, so rerunning an interrupted command draws new parameters instead of repeating the first ones,
+    and differs from the plain seed another worker may have been given. ``None`` (unseeded) stays ``None``.
+
+    :param seed: the command's ``--seed`` (>= 0), or ``None``.
+    :param n_trials: trials already in the study, in any state.
+    """
+    if seed is None or n_trials == 0:
+        return seed
+    return int(np.random.SeedSequence([int(seed), int(n_trials)]).generate_state(1)[0])
 
 
 def recover_trial(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> bool:
