@@ -3,7 +3,11 @@ still queued; bad arrivals, stream stops and tuning reruns lose nothing and repe
 
 from __future__ import annotations
 
+import os
 import random
+import signal
+import subprocess
+import sys
 import threading
 import time
 from collections import Counter
@@ -357,3 +361,36 @@ def _first_run_params(tmp_path, command: list[str]) -> list[tuple]:
     train_main([*command[:command.index("--storage")], "--storage", storage, *command[command.index("--study-name"):]])
     trials = optuna.load_study(study_name="s", storage=open_storage(storage)).trials
     return [tuple(sorted(trial.params.items())) for trial in trials]
+
+
+# --- atomic saves ---
+def test_a_killed_save_leaves_a_temp_file_that_the_next_save_removes(tmp_path):
+    from vafn_gym.files import atomic_write
+
+    target = tmp_path / "model.zip"
+    atomic_write(target, lambda tmp: tmp.write_bytes(b"old"))
+    killed = (
+        "import os, signal, sys\n"
+        "from vafn_gym.files import atomic_write\n"
+        "def write(tmp):\n"
+        "    tmp.write_bytes(b'half')\n"
+        "    os.kill(os.getpid(), signal.SIGKILL)\n"
+        "atomic_write(sys.argv[1], write)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", killed, str(target)], timeout=60)
+    assert result.returncode == -signal.SIGKILL
+    leftovers = [p for p in tmp_path.iterdir() if p.name.endswith(".tmp.zip")]
+    assert len(leftovers) == 1 and target.read_bytes() == b"old"
+    live = tmp_path / f".model.zip.{os.getpid()}-{'a' * 16}.tmp.zip"  # a save in progress (this process): kept
+    live.write_bytes(b"writing")
+    other = tmp_path / ".model.zip.bak.tmp.zip"  # not a temporary file of ours: kept
+    other.write_bytes(b"x")
+
+    def fail(tmp):
+        tmp.write_bytes(b"partial")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        atomic_write(target, fail)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([target.name, live.name, other.name])
+    assert target.read_bytes() == b"old"
