@@ -159,10 +159,14 @@ class QueueMachine(RuleBasedStateMachine):
 
     @initialize(capacity=st.integers(1, 4), overflow=st.sampled_from(["raise", "drop_oldest"]))
     def start(self, capacity, overflow):
-        self.queue = InstructionQueue(capacity=capacity, overflow=overflow)
+        self.told: list[int] = []  # what on_drop received
+        self.queue = InstructionQueue(
+            capacity=capacity, overflow=overflow, n_arms=3, on_drop=lambda entry: self.told.append(entry.sequence)
+        )
         self.ready: list[int] = []
         self.held: list[QueuedInstruction] = []
         self.gone: list[int] = []
+        self.evicted: list[int] = []
         self.next_sequence = 0
 
     @rule(code=st.sampled_from(["1", "2,3", "3,1,2"]))
@@ -173,10 +177,18 @@ class QueueMachine(RuleBasedStateMachine):
                 self.queue.enqueue(code)
             return
         while len(self.ready) >= self.queue.capacity:
-            self.gone.append(self.ready.pop(0))
+            self.evicted.append(self.ready.pop(0))
+            self.gone.append(self.evicted[-1])
         assert self.queue.enqueue(code).sequence == self.next_sequence
         self.ready.append(self.next_sequence)
         self.next_sequence += 1
+
+    @rule(bad=st.sampled_from(["4", "0", "1,,2", "[1", None, [9], "2,x"]))
+    def enqueue_malformed(self, bad):
+        before = (self.queue.snapshot(), self.queue.enqueued, self.queue.dropped)
+        with pytest.raises(ValueError):
+            self.queue.enqueue(bad)  # checked before the queue is full or anything is evicted
+        assert (self.queue.snapshot(), self.queue.enqueued, self.queue.dropped) == before
 
     @rule()
     def dequeue(self):
@@ -237,6 +249,7 @@ class QueueMachine(RuleBasedStateMachine):
         assert queue.enqueued == queue.dequeued + queue.dropped + queue.cleared + len(queue) + queue.in_flight
         everything = self.ready + [entry.sequence for entry in self.held] + self.gone
         assert sorted(everything) == list(range(self.next_sequence))  # nothing lost, nothing twice
+        assert self.told == self.evicted and queue.dropped == len(self.told)  # every eviction reported, uncapped
 
 
 QueueMachine.TestCase.settings = settings(max_examples=60, stateful_step_count=40, deadline=None, database=None)
@@ -340,3 +353,35 @@ def test_concurrent_queue_accounts_for_every_entry(producers, per_producer, cons
     assert queue.enqueued == total and queue.dequeued == len(handled) and queue.in_flight == 0 and len(queue) == 0
     if overflow == "raise":
         assert set(handled) == set(itertools.product(range(producers), range(per_producer)))
+
+
+# --- the stream env: arrivals with arbitrary arm ids never raise out of step() and are never lost silently ---
+@settings(max_examples=25, deadline=None, database=None)
+@given(
+    schedule=st.dictionaries(st.integers(0, 6), st.lists(st.integers(1, 5), min_size=1, max_size=3), max_size=4),
+    capacity=st.integers(1, 4),
+)
+def test_stream_env_arrivals_are_checked_on_attach_or_queued(schedule, capacity):
+    import gymnasium as gym
+
+    import vafn_gym  # noqa: F401  (registers the env IDs)
+    from vafn_gym.queue import ScheduledArrivals
+
+    env = gym.make("VAFN/ThreeArmStream-v1", arrivals=None, auto_dequeue=False, queue_capacity=capacity)
+    stream = env.unwrapped
+    process = ScheduledArrivals(schedule)  # built without n_arms: arm 4 or 5 is only known at attach
+    bad_steps = sorted(step for step, arms in schedule.items() if max(arms) > 3)
+    try:
+        stream.arrival_process = process
+    except ValueError as error:
+        assert bad_steps and f"schedule step {bad_steps[0]}" in str(error) and len(str(error)) < MESSAGE_LIMIT
+        assert stream.arrival_process is None
+        env.close()
+        return
+    assert not bad_steps
+    env.reset(seed=0)
+    for _ in range(8):
+        env.step(env.action_space.sample())
+    refused = [line for line in stream.errors if "full" in line]
+    assert stream.queue.enqueued + len(refused) == process.num_instructions  # queued, or refused with a record
+    env.close()
