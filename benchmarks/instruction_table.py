@@ -24,6 +24,10 @@ uneven light, tinted paper + coloured ink, blur (Gaussian + motion), JPEG qualit
 
     OMP_NUM_THREADS=1 python benchmarks/instruction_table.py --robust-only --checkpoint X.pt --out /tmp/x
     OMP_NUM_THREADS=1 python benchmarks/instruction_table.py --camera-only --camera-items 100
+
+A real-people section (``results/real_people/``, ``--people-speech`` and ``--people-handwriting``) reads commands said
+by real speakers and written by real hands that never trained, validated or calibrated the reader
+(``benchmarks/real_people.py``), with the robot's two rates: acted on correctly and acted on wrongly.
 """
 
 from __future__ import annotations
@@ -72,6 +76,12 @@ def parse_args() -> argparse.Namespace:
                         help="cards per glyph set of the camera section (0: skip)")
     parser.add_argument("--camera-only", action="store_true",
                         help="skip Table 1 and the speech robustness; run only the camera section")
+    parser.add_argument("--people-speech", type=Path, default=None,
+                        help="real people's recorded words (vafn_media.people): adds the real-people section "
+                             "(benchmarks/real_people.py: test speakers and glyphs, acted on correctly / wrongly, "
+                             "pocketsphinx as a reference) to results/real_people/")
+    parser.add_argument("--people-handwriting", type=Path, default=None,
+                        help="folder with MNIST's training files, for the real-people section")
     parser.add_argument("--out", type=Path, default=RESULTS / "instruction_table",
                         help="output prefix: writes <out>.md and <out>.csv")
     return parser.parse_args()
@@ -317,6 +327,11 @@ def main() -> None:
     torch.set_num_threads(1)
     started = time.time()
     generator = InstructionGenerator.load(args.checkpoint)
+    if args.people_speech is not None:
+        import real_people
+
+        real_people.main(["--speech", str(args.people_speech), "--handwriting", str(args.people_handwriting),
+                          "--pocketsphinx"] + (["--checkpoint", args.checkpoint] if args.checkpoint else []))
     if not (args.robust_only or args.camera_only):
         table1(args, generator, started)
     if args.camera_items:

@@ -129,3 +129,48 @@ def test_people_training_items_are_cached_and_never_from_the_test_split(corpus, 
     assert np.array_equal(data.arms, again.arms) and len(list(tmp_path.glob("*.npz"))) == 1
     with pytest.raises(ValueError, match="benchmark only"):
         people_training_data(corpus, mnist, "test", 12, seed=0, cache_dir=tmp_path, progress=False)
+
+
+def test_a_mask_over_a_digit_is_found_painted_over_and_its_columns_returned():
+    from vafn_media.images import find_mask, read_strip, to_gray
+
+    glyphs = {arm: (np.pad(np.ones((20, 6), np.float32), ((0, 0), (7, 7))),) for arm in (1, 2, 3)}
+    strip = handwriting_strip(glyphs, (1, 2, 3), np.random.default_rng(3))
+    assert find_mask(to_gray(strip)) is None and read_strip(strip)[1] is None
+    masked = strip.copy()
+    height, width = strip.shape
+    masked[:, width // 2 - height // 3: width // 2 + height // 3] = 0  # a black block over the middle digit
+    top, bottom, left, right = find_mask(to_gray(masked))
+    assert (top, bottom) == (0, height) and right - left == 2 * (height // 3)
+    canonical, hidden = read_strip(masked)
+    assert hidden is not None and 0 < hidden[0] < hidden[1] < canonical.shape[1]
+    assert canonical[:, hidden[0]:hidden[1]].max() < 0.3  # painted with the paper, not read as a block of ink
+    thin = strip.copy()
+    thin[height // 2 - 1: height // 2 + 2, :] = 0  # a thin bar: every digit still shows
+    assert read_strip(thin)[1] is None
+
+
+def test_saturated_paper_is_not_a_mask():
+    from vafn_media.images import find_mask
+
+    card = np.full((40, 200), 255, np.uint8)
+    card[10:30, 20:26] = 0
+    card[10:30, 80:86] = 0
+    assert find_mask(card.astype(np.float32)) is None
+
+
+def test_hidden_frames_read_as_blank_and_weigh_nothing():
+    import torch
+
+    from vafn_media.decoding import greedy_decode, sequence_log_likelihood
+
+    logits = torch.full((12, 4), -5.0)
+    logits[:, 0] = 5.0
+    logits[2, 1] = logits[6, 2] = logits[10, 3] = 10.0  # reads 1, 2, 3
+    phi = torch.zeros(12, 8)
+    assert greedy_decode(phi, logits).arms == [1, 2, 3]
+    hidden = greedy_decode(phi, logits, hidden=(5, 8))
+    assert hidden.arms == [1, 3] and hidden.masked == (5, 8)
+    # under the mask, the sequence with and without the hidden digit are equally likely to within the blank frames
+    with_digit = sequence_log_likelihood(hidden.log_probs, [1, 2, 3])
+    assert with_digit > sequence_log_likelihood(greedy_decode(phi, logits).log_probs, [1, 3])

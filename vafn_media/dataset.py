@@ -191,17 +191,19 @@ def generate_raw(seed: int, split: str, count: int, difficulty: str | None = Non
 
 def stored_strip(image: np.ndarray, labels: Sequence[int], fallback: np.ndarray | None) -> np.ndarray:
     """Canonical strip of a training image as uint8 ink; an image the reader rejects (a Cutout or a photo that looks
-    like noise) is stored as the ``fallback`` image's strip, or as a blank strip when it shows the empty instruction
-    or has no fallback.
+    like noise) or on which a mask may hide a digit is stored as the ``fallback`` image's strip, or as a blank strip
+    when it shows the empty instruction or has no fallback.
 
     :param image: the image to store.
     :param labels: its instruction's arm ids.
     :param fallback: an image of the same instruction the reader accepts (or None).
     """
-    from vafn_media.images import canonical_strip
+    from vafn_media.images import canonical_strip, read_strip
 
     try:
-        strip = canonical_strip(image)
+        strip, hidden = read_strip(image)
+        if hidden is not None:  # a mask hides a digit the label still names: the reader marks it, never guesses it
+            raise ValueError("a digit may be hidden")
     except ValueError:
         if not labels or fallback is None:
             strip = np.zeros((IMAGE_HEIGHT, MIN_IMAGE_WIDTH), np.float32)

@@ -25,6 +25,8 @@ class Decoded:
     embeddings: torch.Tensor
     weakest: float
     log_probs: torch.Tensor = field(repr=False)
+    #: Frames [start, stop) the input hid (see :func:`greedy_decode`'s ``hidden``).
+    masked: tuple[int, int] | None = None
 
 
 def path_segments(best: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -36,7 +38,8 @@ def path_segments(best: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return starts, np.r_[starts[1:], len(best)]
 
 
-def greedy_decode(phi: torch.Tensor, logits: torch.Tensor, blank_penalty: float = 0.0) -> Decoded:
+def greedy_decode(phi: torch.Tensor, logits: torch.Tensor, blank_penalty: float = 0.0,
+                  hidden: tuple[int, int] | None = None) -> Decoded:
     """Best-path CTC decoding of one sequence.
 
     :param phi: (T, LATENT_DIM) latent frames.
@@ -44,16 +47,21 @@ def greedy_decode(phi: torch.Tensor, logits: torch.Tensor, blank_penalty: float 
     :param blank_penalty: subtracted from the blank logit before decoding, so a token the frames half-hear is kept
         rather than swallowed by the blank; the confidences and the log posteriors fusion rescores with are those of
         the penalised logits.
+    :param hidden: frames [start, stop) the input hid (a mask on an image): they read as blank and their log
+        posteriors are uniform, so they are no evidence for or against any sequence when readings are rescored.
     """
     if blank_penalty:
         logits = logits.clone()
         logits[..., BLANK] -= blank_penalty
     log_probs = torch.log_softmax(logits, dim=-1)
+    if hidden is not None:
+        hidden = (max(0, hidden[0]), min(len(log_probs), hidden[1]))
+        log_probs[hidden[0]:hidden[1]] = -float(np.log(log_probs.shape[-1]))
     probs = log_probs.exp().numpy()
-    best = probs.argmax(-1)
+    best = probs.argmax(-1)  # a hidden frame's uniform posterior reads as BLANK, the first label
     length = len(best)
     if length == 0:
-        return Decoded([], [], [], phi.new_zeros((0, phi.shape[-1])), 0.0, log_probs)
+        return Decoded([], [], [], phi.new_zeros((0, phi.shape[-1])), 0.0, log_probs, hidden)
     best_prob = probs[np.arange(length), best]
     starts, ends = path_segments(best)
     arms, confidences, peaks, embeddings = [], [], [], []
@@ -70,7 +78,9 @@ def greedy_decode(phi: torch.Tensor, logits: torch.Tensor, blank_penalty: float 
     stacked = (
         torch.from_numpy(np.stack(embeddings).astype(np.float32)) if embeddings else phi.new_zeros((0, phi.shape[-1]))
     )
-    return Decoded(arms, confidences, peaks, stacked, float(best_prob.min()), log_probs)
+    if hidden is not None:  # the least certain decision is among the frames that were seen
+        best_prob[hidden[0]:hidden[1]] = 1.0
+    return Decoded(arms, confidences, peaks, stacked, float(best_prob.min()), log_probs, hidden)
 
 
 def best_path_arms(log_probs: torch.Tensor, blank_penalty: float = 0.0) -> list[int]:

@@ -13,11 +13,16 @@ import numpy as np
 
 from vafn_gym.instructions import Instruction
 from vafn_media.audio import AudioSource, load_audio, with_quiet_edges
-from vafn_media.constants import LOW_CONFIDENCE, MAX_INSTRUCTION_LENGTH, NUM_ARMS, SAMPLE_RATE
-from vafn_media.images import ImageSource, canonical_strip
+from vafn_media.constants import ENCODER_STRIDE, LOW_CONFIDENCE, MAX_INSTRUCTION_LENGTH, NUM_ARMS, SAMPLE_RATE
+from vafn_media.images import ImageSource, read_strip
 
 #: The packaged checkpoint (weights + metadata JSON), produced by ``python -m vafn_media.train``.
 DEFAULT_CHECKPOINT = Path(__file__).parent / "checkpoints" / "instruction_model.pt"
+#: A masked image does not contradict a fused reading whose CTC log-likelihood under its visible frames is at most this
+#: much below that of its own reading (nats): the difference lies under the mask.
+MASK_TOLERANCE_NATS: float = 2.0
+#: Frames beside a mask that are read as hidden too: the encoder's receptive field spreads the mask's edge into them.
+MASK_EDGE_FRAMES: int = 1
 #: Largest checkpoint (bytes) and metadata file :meth:`InstructionGenerator.load` reads, and the largest channel or
 #: hidden size its metadata may give the network (all checked before anything is read or built).
 MAX_CHECKPOINT_BYTES = 64 * 2**20
@@ -205,16 +210,17 @@ class InstructionGenerator:
             phi, _ = self.model.encode("image", tensor, torch.tensor([strip.shape[1]]))
         return phi[0]
 
-    def read(self, phi, modality: str):
+    def read(self, phi, modality: str, hidden: tuple[int, int] | None = None):
         """Greedy CTC reading of Φ frames by the shared decoder, with the modality's blank penalty.
 
         :param phi: (T, LATENT_DIM) latent frames.
         :param modality: "audio" or "image": the encoder the frames came from.
+        :param hidden: frames [start, stop) the input hid (:func:`~vafn_media.decoding.greedy_decode`).
         """
         from vafn_media.decoding import greedy_decode
 
         with self._torch.inference_mode():
-            return greedy_decode(phi, self.model.decode(phi), float(self.blank_penalty.get(modality, 0.0)))
+            return greedy_decode(phi, self.model.decode(phi), float(self.blank_penalty.get(modality, 0.0)), hidden)
 
     def read_audio(self, audio: AudioSource, sample_rate: int | None = None):
         """Greedy reading of validated audio (with silence added at an end that is in a sound) and its warnings (the
@@ -259,7 +265,31 @@ class InstructionGenerator:
 
         :param image: as :meth:`transcribe`'s ``image``.
         """
-        return self.read(self.encode_strip(canonical_strip(image)), "image")
+        strip, masked = read_strip(image)
+        hidden = None if masked is None else (masked[0] // ENCODER_STRIDE - MASK_EDGE_FRAMES,
+                                              -(-masked[1] // ENCODER_STRIDE) + MASK_EDGE_FRAMES)
+        return self.read(self.encode_strip(strip), "image", hidden)
+
+    def contradicted_by(self, readings: dict, arms: list[int]) -> list[str]:
+        """The modalities whose reading differs from ``arms`` in what they saw: all that read another sequence, less
+        a masked one (:attr:`~vafn_media.decoding.Decoded.masked`) whose visible frames fit ``arms`` within
+        :data:`MASK_TOLERANCE_NATS` of its own reading.
+
+        :param readings: modality -> greedy reading.
+        :param arms: the fused reading.
+        """
+        from vafn_media.decoding import sequence_log_likelihood
+
+        against = []
+        for name, reading in readings.items():
+            if list(reading.arms) == list(arms):
+                continue
+            if reading.masked is not None:
+                own = sequence_log_likelihood(reading.log_probs, list(reading.arms))
+                if sequence_log_likelihood(reading.log_probs, list(arms)) >= own - MASK_TOLERANCE_NATS:
+                    continue
+            against.append(name)
+        return against
 
     # --- public API ---
     def transcribe(self, audio: AudioSource | None = None, image: ImageSource | None = None,
@@ -305,14 +335,21 @@ class InstructionGenerator:
         warnings += [f"{name} ignored: {why}" for name, why in dropped.items()]
         with self._torch.inference_mode():
             fused = fuse(readings, self.model.decode, self.fusion_weights, self.confidence_calibration)
-        if len({tuple(r.arms) for r in readings.values()}) > 1:
+        if len(readings) > 1 and self.contradicted_by(readings, fused.arms):
             warnings.append("modalities disagree: " + ", ".join(f"{n}={list(r.arms)}" for n, r in readings.items()))
+        if len(readings) == 1 and next(iter(readings.values())).masked is not None:
+            warnings.append(f"{next(iter(readings))} is partly masked (a solid rectangle of one grey level): a digit "
+                            f"under it may be missing")
         arms = fused.arms[:MAX_INSTRUCTION_LENGTH]
         if len(fused.arms) > MAX_INSTRUCTION_LENGTH:
             warnings.append(f"read {len(fused.arms)} arm ids; only the first {MAX_INSTRUCTION_LENGTH} are kept")
         confidence = reading_confidence(fused)  # a single modality's fused reading is that reading itself
         if len(readings) == 1:
             confidence = calibrated(confidence, self.confidence_calibration.get(next(iter(readings))))
+        seen = {n: r for n, r in readings.items() if r.masked is None}
+        if len(seen) < len(readings) and seen:  # a masked image adds no certainty about what it could not see
+            confidence = min(confidence, max(calibrated(reading_confidence(r), self.confidence_calibration.get(n))
+                                             for n, r in seen.items()))
         low = confidence < self.low_confidence or bool(warnings)
         return Transcription(
             instruction=Instruction.from_arms(arms, n_arms=NUM_ARMS),

@@ -47,6 +47,16 @@ _BACKGROUND_ROWS = 9
 _BACKGROUND_WINDOW = 5
 #: Images taller than this are first downscaled to it (speed; the output has IMAGE_HEIGHT rows).
 _WORK_HEIGHT = 4 * IMAGE_HEIGHT
+#: A mask (a Cutout, a sticker): a solid rectangle of one exact grey level, the image's darkest or brightest, that
+#: covers between these shares of the image, at least MASK_MIN_SIDE pixels each way, fills at least MASK_SOLIDITY of
+#: its bounding box, and whose grey level is rare outside it (else it is saturated paper, not a mask).
+MASK_AREA_RANGE: tuple[float, float] = (0.02, 0.5)
+MASK_MIN_SIDE: int = 4
+MASK_SOLIDITY: float = 0.9
+MASK_OUTSIDE_SHARE: float = 0.2
+#: A mask hides what is under it when it covers at least this share of the digits' height; a thinner bar through the
+#: row is painted over and the digits around it are read.
+MASK_HIDES_HEIGHT: float = 0.5
 
 
 def _cv2():
@@ -184,22 +194,63 @@ def _ink_map(gray: np.ndarray) -> np.ndarray:
     return residual if skew > 0 else -residual
 
 
-def canonical_strip(image: ImageSource) -> np.ndarray:
-    """Turn an image of a digit row into the model's input: float32 (IMAGE_HEIGHT, W), ink bright on a zero background.
+def find_mask(gray: np.ndarray) -> tuple[int, int, int, int] | None:
+    """The mask on an image, as (top, bottom, left, right) pixel bounds, or None: see :data:`MASK_AREA_RANGE`.
 
-    Steps: gray conversion, subtraction of the local paper level (uneven light, tinted paper), polarity from the side
-    the ink stands out on, contrast normalisation, crop to the content box plus a margin, aspect-preserving resize to
+    :param gray: float32 gray image (exact grey levels, as :func:`to_gray` leaves them).
+    """
+    cv2 = _cv2()
+    area = gray.shape[0] * gray.shape[1]
+    best = None
+    for level in {float(gray.min()), float(gray.max())}:
+        same = (gray == level).astype(np.uint8)
+        count, _, stats, _ = cv2.connectedComponentsWithStats(same, connectivity=4)
+        for left, top, width, height, pixels in stats[1:count]:
+            box = width * height
+            if (min(width, height) < MASK_MIN_SIDE or not MASK_AREA_RANGE[0] * area <= box <= MASK_AREA_RANGE[1] * area
+                    or pixels < MASK_SOLIDITY * box
+                    or same.sum() - pixels > MASK_OUTSIDE_SHARE * (area - box)):
+                continue
+            if best is None or box > (best[1] - best[0]) * (best[3] - best[2]):
+                best = (int(top), int(top + height), int(left), int(left + width))
+    return best
+
+
+def canonical_strip(image: ImageSource) -> np.ndarray:
+    """Turn an image of a digit row into the model's input: float32 (IMAGE_HEIGHT, W), ink bright on a zero background
+    (:func:`read_strip` without the mask)."""
+    return read_strip(image)[0]
+
+
+def read_strip(image: ImageSource) -> tuple[np.ndarray, tuple[int, int] | None]:
+    """The model's input for an image of a digit row, float32 (IMAGE_HEIGHT, W) with ink bright on a zero background,
+    and the strip's columns [start, stop) under a mask that may hide a digit (:func:`find_mask`, covering at least
+    :data:`MASK_HIDES_HEIGHT` of the digits' height beside or over them; None otherwise).
+
+    Steps: gray conversion, a mask painted over with the paper's level, subtraction of the local paper level (uneven
+    light, tinted paper), polarity from the side the ink stands out on, contrast normalisation, crop to the content
+    box plus a margin (widened to a mask beside the digits, which may hide one), aspect-preserving resize to
     IMAGE_HEIGHT rows.
 
     :param image: path, or array accepted by :func:`to_gray`.
     """
     cv2 = _cv2()
     gray = to_gray(read_image_file(image) if isinstance(image, (str, os.PathLike)) else image)
+    mask = find_mask(gray)
+    if mask is not None:
+        top, bottom, left, right = mask
+        covered = np.zeros(gray.shape, bool)
+        covered[top:bottom, left:right] = True
+        gray = gray.copy()
+        gray[covered] = float(np.median(gray[~covered]))
+        mask_box = np.array([top, bottom, left, right], np.float64)
     if float(gray.std()) < BLANK_IMAGE_STD:
         shade = "all-black" if gray.mean() < 128 else "uniform"
         raise ValueError(f"image is {shade} (every pixel ~ {gray.mean():.0f}): there is nothing to read")
     if gray.shape[0] > _WORK_HEIGHT:  # work at a bounded resolution: the output is IMAGE_HEIGHT rows anyway
         width = max(1, int(round(gray.shape[1] * _WORK_HEIGHT / gray.shape[0])))
+        if mask is not None:
+            mask_box *= np.repeat([_WORK_HEIGHT / gray.shape[0], width / gray.shape[1]], 2)
         gray = cv2.resize(gray, (width, _WORK_HEIGHT), interpolation=cv2.INTER_AREA)
     ink = _ink_map(gray)
     scale = float(np.percentile(ink, 99.5))
@@ -224,9 +275,25 @@ def canonical_strip(image: ImageSource) -> np.ndarray:
         top, bottom = rows[0] / factor + grown, (rows[-1] + 1) / factor - grown
         left, right = cols[0] / factor + grown, (cols[-1] + 1) / factor - grown
         margin = CONTENT_MARGIN * (bottom - top)
+        if mask is not None:
+            digit_height = bottom - top
+            covered = min(bottom, mask_box[1]) - max(top, mask_box[0])
+            beside = mask_box[2] < right + digit_height and mask_box[3] > left - digit_height
+            if covered < MASK_HIDES_HEIGHT * digit_height or not beside:
+                mask = None  # digits are visible around it, or it is off the row
+            else:  # a digit may be under the mask: keep its columns in the strip
+                left, right = min(left, mask_box[2]), max(right, mask_box[3])
         top, bottom = int(max(0, top - margin)), int(min(height, bottom + margin + 1))
         left, right = int(max(0, left - margin)), int(min(width, right + margin + 1))
         ink = ink[top:bottom, left:right]
+        if mask is not None:
+            mask_box[2:] -= left
+    else:
+        mask = None
     crop_h, crop_w = ink.shape
     new_w = int(np.clip(round(crop_w * IMAGE_HEIGHT / crop_h), MIN_IMAGE_WIDTH, MAX_IMAGE_WIDTH))
-    return cv2.resize(ink, (new_w, IMAGE_HEIGHT), interpolation=cv2.INTER_AREA).astype(np.float32)
+    strip = cv2.resize(ink, (new_w, IMAGE_HEIGHT), interpolation=cv2.INTER_AREA).astype(np.float32)
+    if mask is None:
+        return strip, None
+    start, stop = np.clip(np.round(mask_box[2:] * new_w / crop_w), 0, new_w).astype(int)
+    return strip, ((int(start), int(stop)) if stop > start else None)

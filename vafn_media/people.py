@@ -139,12 +139,11 @@ def say_instruction(words: SpokenWords, arms: Sequence[int], rng: np.random.Gene
     :param words: the split's recordings.
     :param arms: the instruction's arm ids (none: a short silence).
     :param rng: random generator (speaker, recordings, pauses).
-    :param speaker: who says it (default: a random speaker with every word, or any speaker if none has them all);
-        a word this speaker never said is taken from another speaker of the split.
+    :param speaker: who says it (default: a random speaker of the split); a word this speaker never said is taken
+        from another speaker of the split (few people of a corpus say every word).
     """
     if speaker is None:
-        pool = words.complete_speakers() or list(words.speakers)
-        speaker = pool[int(rng.integers(len(pool)))]
+        speaker = list(words.speakers)[int(rng.integers(len(words.speakers)))]
     elif speaker not in words.speakers:
         raise ValueError(f"speaker {speaker!r} is not in the {words.split} split")
     pieces = [np.zeros(int(rng.uniform(*EDGE_SILENCE_RANGE) * SAMPLE_RATE), np.float32)]
