@@ -11,7 +11,7 @@ shows the arms after it, or one single-waypoint instruction per arm of the task,
 (``--support per-arm``). Methods
 that adapt inside the episode (a history of readings, ``--method ... '{"history": 4}'``) and methods evaluated
 zero-shot run at K = 0 only (``zero-shot`` as the fifth field). ``infer-probe`` runs a model trained with observed
-targets through :class:`vafn_sb3.target_inference.TargetInferencePolicy` (probe moves, then trilateration inside the
+targets through :class:`vafn_sb3.inference.TargetInferencePolicy` (probe moves, then trilateration inside the
 episode; ``infer-passive``: without the probe moves; ``infer-learned``: probe moves, then the network of
 ``--target-estimator`` (default: the packaged one) instead of trilateration; ``infer-none``: the centre of the shared
 region as every goal), also at K = 0 only. ``infer-gradient`` makes the probe moves, then infers each target by K
@@ -71,7 +71,7 @@ from vafn_sb3.common.adaptation_curves import (  # noqa: E402
     aggregate_adaptation,
     plot_adaptation,
 )
-from vafn_sb3.target_inference import (  # noqa: E402
+from vafn_sb3.inference import (  # noqa: E402
     INFERENCE_MODES,
     REFINE_SOLVER,
     REFINE_SOLVERS,

@@ -45,7 +45,7 @@ from vafn_sb3 import (  # noqa: E402
     load_pretrained,
 )
 from vafn_sb3.loading import add_trust_flag, load_model  # noqa: E402
-from vafn_sb3.target_inference import ESTIMATOR_READINGS, REFINE_SOLVERS, REFINE_STEPS  # noqa: E402
+from vafn_sb3.inference import ESTIMATOR_READINGS, REFINE_SOLVERS, REFINE_STEPS  # noqa: E402
 from zoo.registry import register_algorithms  # noqa: E402
 
 #: Reset seeds of the collection episodes (train and test episodes never share one).

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from vafn_sb3 import MTSAC, SAC, GradientTargetEstimator, LearnedTargetEstimator, save_weights
-from vafn_sb3.target_inference import REFINE_SOLVER, REFINE_STEPS
+from vafn_sb3.inference import REFINE_SOLVER, REFINE_STEPS
 
 ROOT = Path(__file__).resolve().parents[1]
 HIDDEN = "VAFN/ThreeArmReachHidden-v1"

@@ -66,7 +66,7 @@ def test_packaged_goal_observing_policy_completes_hidden_target_instructions_thr
     import gymnasium as gym
 
     from vafn_gym import run_episode
-    from vafn_sb3.target_inference import inference_policy_for_env
+    from vafn_sb3.inference import inference_policy_for_env
 
     hidden = "VAFN/ThreeArmReachHidden-v1"
     env = gym.make(hidden)

@@ -13,8 +13,8 @@ import vafn_gym  # noqa: F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark, ScriptedController, run_episode, trilaterate
 from vafn_gym.controllers import PROBE_DIRECTIONS
 from vafn_sb3.common.adaptation import evaluate_adaptation
-from vafn_sb3.gradient_estimator import BASELINE_STEP_SIZES, GradientTargetEstimator
-from vafn_sb3.target_inference import (
+from vafn_sb3.inference.estimators.gradient import BASELINE_STEP_SIZES, GradientTargetEstimator
+from vafn_sb3.inference import (
     ESTIMATOR_READINGS,
     REFINE_SOLVER,
     REFINE_STEPS,

@@ -4,7 +4,13 @@ from vafn_sb3.callbacks import MetaEvalCallback, RolloutCollisionCallback, Succe
 from vafn_sb3.common.adaptation import Adaptable, AdaptedPolicy, collect_support, evaluate_adaptation
 from vafn_sb3.common.agents import shared_actor_for_env
 from vafn_sb3.common.adaptation_curves import AdaptationCurve, aggregate_adaptation, plot_adaptation
-from vafn_sb3.gradient_estimator import GradientTargetEstimator
+from vafn_sb3.inference import (
+    GradientInferencePolicy,
+    GradientTargetEstimator,
+    LearnedTargetEstimator,
+    TargetInferencePolicy,
+    collect_waypoint_readings,
+)
 from vafn_sb3.maac import MAAC
 from vafn_sb3.maddpg import MADDPG
 from vafn_sb3.maml_sac import MAMLSAC
@@ -13,12 +19,6 @@ from vafn_sb3.mtsac import MTSAC
 from vafn_sb3.online import OnlineController
 from vafn_sb3.pretrained import available_pretrained, load_pretrained, pretrained_info
 from vafn_sb3.sac import SAC
-from vafn_sb3.target_inference import (
-    GradientInferencePolicy,
-    LearnedTargetEstimator,
-    TargetInferencePolicy,
-    collect_waypoint_readings,
-)
 
 __all__ = [
     "MAAC",

@@ -47,7 +47,7 @@ from vafn_sb3 import load_pretrained, pretrained_info  # noqa: E402
 from vafn_media.cli import OneLineParser  # noqa: E402
 from vafn_sb3.loading import add_trust_flag, family_mismatch, load_model, training_env, training_seed  # noqa: E402
 from vafn_sb3.online import InstructionLog, OnlineController  # noqa: E402
-from vafn_sb3.target_inference import (  # noqa: E402
+from vafn_sb3.inference import (  # noqa: E402
     ESTIMATOR_MODES,
     INFERENCE_MODES,
     REFINE_SOLVER,
