@@ -53,6 +53,7 @@ from vafn_sb3.common.serialization import AtomicSaveMixin
 from vafn_sb3.maml_sac.buffers import TaskRolloutBuffer
 from vafn_sb3.maml_sac.functional import inner_adapt, query_losses
 from vafn_sb3.maml_sac.nstep import nstep_targets, stack_supports
+from vafn_sb3.sac.lean import LeanSACMixin
 from vafn_sb3.maml_sac.policies import ActorDistribution, AdaptedSACPolicy, Params, detached, parameters_of
 from vafn_sb3.sac.policies import SharedAgentPolicy
 
@@ -64,7 +65,7 @@ META_BATCH_MODES = ("vmap", "loop")
 EPISODE_STATS_WINDOW = 100
 
 
-class MAMLSAC(AtomicSaveMixin, SAC):
+class MAMLSAC(AtomicSaveMixin, LeanSACMixin, SAC):
     """SAC meta-trained with MAML over the env's task distribution; :meth:`adapt` specialises it to one task.
 
     Takes SB3's :class:`~stable_baselines3.SAC` arguments (``learning_rate`` to ``device``: same names, defaults and
@@ -101,6 +102,8 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         (one call per task).
     :param max_grad_norm: clip the meta-gradient of actor and critic to this norm.
     :param task_seed: seed of the task pool and of the meta-batch draws.
+    :param lean_update: the warm-up and plain SAC steps (``train``) take the lean update of SAC's losses
+        (:mod:`vafn_sb3.sac.lean`); False runs SB3's ``SAC.train``. The meta-steps are unaffected.
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -160,6 +163,7 @@ class MAMLSAC(AtomicSaveMixin, SAC):
         meta_batch_mode: str = "vmap",
         max_grad_norm: float = 10.0,
         task_seed: int = 0,
+        lean_update: bool = True,
         _init_setup_model: bool = True,
     ) -> None:
         counts = {"meta_batch_size": meta_batch_size, "n_support": n_support, "n_query": n_query,
@@ -189,7 +193,7 @@ class MAMLSAC(AtomicSaveMixin, SAC):
             ent_coef=ent_coef, target_update_interval=target_update_interval, target_entropy=target_entropy,
             use_sde=use_sde, sde_sample_freq=sde_sample_freq, use_sde_at_warmup=use_sde_at_warmup,
             stats_window_size=stats_window_size, tensorboard_log=tensorboard_log, policy_kwargs=policy_kwargs,
-            verbose=verbose, seed=seed, device=device, _init_setup_model=False,
+            verbose=verbose, seed=seed, device=device, lean_update=lean_update, _init_setup_model=False,
         )
         self.meta_batch_size = int(meta_batch_size)
         self.n_support = int(n_support)

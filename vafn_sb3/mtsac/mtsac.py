@@ -10,21 +10,23 @@ from stable_baselines3.common.type_aliases import MaybeCallback
 
 from vafn_sb3.common.finetune import FineTuneAdaptation
 from vafn_sb3.common.serialization import AtomicSaveMixin
+from vafn_sb3.sac.lean import LeanSACMixin
 from vafn_sb3.sac.policies import MlpPolicy, SharedAgentPolicy
 
 SelfMTSAC = TypeVar("SelfMTSAC", bound="MTSAC")
 
 
-class MTSAC(AtomicSaveMixin, FineTuneAdaptation, SAC):
+class MTSAC(AtomicSaveMixin, FineTuneAdaptation, LeanSACMixin, SAC):
     """Plain SB3 SAC trained on the union of training tasks; ``adapt`` fine-tunes it on the support set.
 
-    Training is SB3's SAC unchanged: pre-train on an env that samples training instructions every episode (e.g.
+    Training is SB3's SAC (by default through the lean update of the same losses, ``lean_update=True``; see
+    :mod:`vafn_sb3.sac.lean`): pre-train on an env that samples training instructions every episode (e.g.
     ``VAFN/ThreeArmReachHidden-v1`` with ``split="train"``). ``adapt`` (from
     :class:`~vafn_sb3.common.finetune.FineTuneAdaptation`) runs ``k`` full-batch SAC updates (critic, actor,
     temperature, target networks, with SAC's own Adam optimisers) on exactly the support data MAML-SAC receives, then
     restores the model. This is the "multi-task pre-training + fine-tuning" baseline of Mandi et al. (NeurIPS 2022).
     Policies: ``"MlpPolicy"`` (SB3's) or ``"SharedAgentPolicy"`` (the decentralised per-agent actor). Parameters are
-    SB3's ``SAC``'s.
+    SB3's ``SAC``'s, plus ``lean_update`` (False: SB3's ``SAC.train``).
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
