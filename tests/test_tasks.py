@@ -103,7 +103,17 @@ def test_length_range_and_bad_arguments():
     with pytest.raises(ValueError, match="min_length"):
         TaskSampler(min_length=5, max_length=2)
     with pytest.raises(ValueError, match="no 'validation' orders"):
-        TaskSampler("validation", min_length=1, max_length=1)
+        TaskSampler("validation", min_length=1, max_length=1, fractions=(0.5, 0.0, 0.5))
+
+
+def test_every_split_holds_every_length_and_only_three_orders_left_their_hashed_split():
+    samplers = {split: TaskSampler(split) for split in ("train", "validation", "test")}
+    for split, sampler in samplers.items():
+        assert sorted({len(order) for order in sampler.orders}) == list(range(1, 11)), split
+    sampler = samplers["train"]
+    moved = {o: sampler.split_of(o) for n in range(1, 11) for o in sampler._enumerate(n)
+             if sampler.split_of(o) != sampler._hashed_split(sampler._hash(o))}
+    assert moved == {(2,): "validation", (2, 1): "validation", (3, 1, 2): "validation", (2, 1, 2): "test"}
 
 
 # --- InstructionTask: target resolution ---

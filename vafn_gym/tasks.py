@@ -68,6 +68,7 @@ class TaskSampler:
         self.layout = layout or ArmLayout()
         self.n_arms = self.layout.n_arms
         self.rng = np.random.default_rng(seed)
+        self._tables: dict[int, dict[tuple[int, ...], str]] = {}
         # Exact per-length lists where the order space is small; None marks a length drawn by rejection.
         self._orders_by_length: dict[int, list[tuple[int, ...]] | None] = {}
         for length in range(min_length, max_length + 1):
@@ -111,12 +112,43 @@ class TaskSampler:
         return tuple(order)
 
     def split_of(self, order: tuple[int, ...] | Instruction) -> str:
-        """The split an arm order belongs to (a hash of the order, so independent of the sampler's length range)."""
+        """The split an arm order belongs to: a hash of the order, rebalanced within its length (see
+        :meth:`_split_table`), so independent of the sampler's length range."""
         arms = order.arms if isinstance(order, Instruction) else tuple(order)
+        if 0 < len(arms) <= MAX_INSTRUCTION_LENGTH and self._count(len(arms)) <= ENUMERATION_LIMIT:
+            split = self._split_table(len(arms)).get(arms)
+            if split is not None:
+                return split
+        return self._hashed_split(self._hash(arms))
+
+    def _hash(self, arms: tuple[int, ...]) -> float:
         digest = hashlib.sha256(f"{self.split_seed}:{','.join(map(str, arms))}".encode()).digest()
-        u = int.from_bytes(digest[:8], "big") / 2.0**64
+        return int.from_bytes(digest[:8], "big") / 2.0**64
+
+    def _hashed_split(self, u: float) -> str:
         train, validation, _ = self.fractions
         return "train" if u < train else "validation" if u < train + validation else "test"
+
+    def _split_table(self, length: int) -> dict[tuple[int, ...], str]:
+        """Split of every order of ``length``: by hash, except that a split the hash leaves without an order of this
+        length (and which has a positive share) takes one from the largest split, the neighbours in hash order moving.
+
+        With three arms and ``split_seed=0`` this moves three orders (one each of lengths 1, 2 and 3; no order moves
+        between train and test): every split then holds every length.
+        """
+        if length not in self._tables:
+            orders = sorted(self._enumerate(length), key=self._hash)
+            counts = [sum(self._hashed_split(self._hash(o)) == split for o in orders) for split in SPLITS]
+            if len(orders) >= len(SPLITS):
+                for index in range(len(SPLITS)):
+                    if counts[index] == 0 and self.fractions[index] > 0:
+                        donor = max((i for i in range(len(SPLITS)) if i != index), key=lambda i: (counts[i], -i))
+                        counts[index], counts[donor] = 1, counts[donor] - 1
+            bounds = np.cumsum(counts)
+            self._tables[length] = {
+                order: SPLITS[int(np.searchsorted(bounds, rank, side="right"))] for rank, order in enumerate(orders)
+            }
+        return self._tables[length]
 
     @property
     def orders(self) -> list[tuple[int, ...]]:
@@ -147,6 +179,39 @@ class TaskSampler:
     def sample_tasks(self, n: int) -> list[Instruction]:
         """``n`` independent instructions (a meta-batch)."""
         return [self.sample() for _ in range(n)]
+
+    def stratified_orders(self, n: int, seed: int = 0) -> list[tuple[int, ...]]:
+        """``n`` distinct orders of this split spread as evenly as they allow over its lengths, interleaved by length
+        (the order of length 1, then 2, ... then each length's second one, ...) so every prefix is stratified too.
+
+        A length gets an equal share of what is left (at most all of its orders); the orders of a length are drawn with
+        ``seed``. ``ValueError`` where the split holds fewer than ``n`` orders in the sampler's length range.
+        """
+        rng = np.random.default_rng(seed)
+        available = {
+            length: len(orders) if orders is not None else n for length, orders in self._orders_by_length.items()
+        }
+        if sum(available.values()) < n:
+            raise ValueError(f"the {self.split!r} split holds {sum(available.values())} orders of lengths "
+                             f"{self.min_length}..{self.max_length}, fewer than {n}")
+        quota, remaining = {}, n
+        for index, length in enumerate(sorted(available, key=lambda length: (available[length], length))):
+            left = len(available) - index
+            quota[length] = min(available[length], -(-remaining // left))
+            remaining -= quota[length]
+        drawn: dict[int, list[tuple[int, ...]]] = {}
+        for length in self._lengths:
+            candidates = self._orders_by_length[length]
+            if candidates is not None:
+                drawn[length] = [candidates[i] for i in rng.choice(len(candidates), quota[length], replace=False)]
+                continue
+            picked: dict[tuple[int, ...], None] = {}
+            while len(picked) < quota[length]:
+                order = self._random_order(length, rng)
+                if self.split_of(order) == self.split:
+                    picked[order] = None
+            drawn[length] = list(picked)
+        return [drawn[length][r] for r in range(max(quota.values())) for length in self._lengths if r < quota[length]]
 
     def fixed_set(self, n: int, seed: int = 0) -> list[Instruction]:
         """A deterministic set of ``n`` instructions (e.g. the held-out evaluation set), independent of the stream."""
