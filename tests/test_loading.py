@@ -8,7 +8,7 @@ import zipfile
 import gymnasium as gym
 import pytest
 from sb3_contrib import RecurrentPPO
-from stable_baselines3 import PPO, TD3
+from stable_baselines3 import DDPG, PPO, TD3
 from stable_baselines3 import SAC as SB3SAC
 
 import vafn_gym  # noqa: F401  (registers the env IDs)
@@ -20,7 +20,8 @@ TINY = [16]
 ON_POLICY = dict(n_steps=64, batch_size=64)
 
 #: (algorithm key, how to build an untrained model, the key load_model must detect). SAC, MTSAC and SB3's SAC save
-#: the same policy classes and no keys of their own, so they load as MTSAC (SAC plus fine-tuning), which runs them all.
+#: the same policy classes and no keys of their own, so they load as MTSAC (SAC plus fine-tuning), which runs them all;
+#: likewise SB3's DDPG is TD3 with other settings and loads as TD3 (as ``ddpg`` from a zoo run's ``ddpg/`` folder).
 CASES = [
     ("maml_sac", lambda env: MAMLSAC("SharedAgentPolicy", env, policy_kwargs=dict(net_arch=TINY)), "maml_sac"),
     ("mtsac", lambda env: MTSAC("SharedAgentPolicy", env, policy_kwargs=dict(net_arch=TINY)), "mtsac"),
@@ -29,6 +30,8 @@ CASES = [
     ("maac", lambda env: MAAC(env=env, policy_kwargs=dict(net_arch=dict(pi=TINY, qf=[16]))), "maac"),
     ("maddpg", lambda env: MADDPG(env=env, policy_kwargs=dict(net_arch=TINY)), "maddpg"),
     ("td3", lambda env: TD3("MlpPolicy", env, policy_kwargs=dict(net_arch=TINY)), "td3"),
+    # the upstream zoo's ddpg with our shared actor: MADDPG's policy, but not MADDPG's own hyperparameters
+    ("ddpg", lambda env: DDPG("SharedAgentPolicy", env, policy_kwargs=dict(net_arch=TINY)), "td3"),
     ("mappo", lambda env: MAPPO(env=env, policy_kwargs=dict(net_arch=TINY), **ON_POLICY), "mappo"),
     ("ppo", lambda env: PPO("MlpPolicy", env, policy_kwargs=dict(net_arch=TINY), **ON_POLICY), "ppo"),
     ("ppo_lstm", lambda env: RecurrentPPO("MlpLstmPolicy", env, policy_kwargs=dict(net_arch=TINY, lstm_hidden_size=8),
@@ -49,7 +52,8 @@ def test_a_saved_zip_loads_as_the_algorithm_that_saved_it(key, build, detected, 
     model.save(tmp_path / f"{key}.zip")
     loaded, found = load_model(tmp_path / f"{key}.zip", trust_remote_code=True)
     assert found == detected
-    assert isinstance(loaded, type(model)) or (detected == "mtsac" and isinstance(loaded, MTSAC))
+    assert isinstance(loaded, type(model)) or (detected == "mtsac" and isinstance(loaded, MTSAC)) or (
+        detected == "td3" and type(loaded) is TD3)
     assert type(loaded.policy) is type(model.policy)
 
 
@@ -59,6 +63,14 @@ def test_a_zoo_run_folder_names_the_algorithm_among_those_sharing_a_policy(env, 
     SAC("SharedAgentPolicy", env, policy_kwargs=dict(net_arch=TINY)).save(run / "VAFN-ThreeArmReach-v1.zip")
     model, key = load_model(run / "VAFN-ThreeArmReach-v1.zip", trust_remote_code=True)
     assert key == "sac" and type(model) is SAC
+
+
+def test_an_upstream_zoo_ddpg_run_loads_as_ddpg_not_maddpg(env, tmp_path):
+    run = tmp_path / "ddpg" / "VAFN-ThreeArmReach-v1_1"
+    run.mkdir(parents=True)
+    DDPG("SharedAgentPolicy", env, policy_kwargs=dict(net_arch=TINY)).save(run / "VAFN-ThreeArmReach-v1.zip")
+    model, key = load_model(run / "VAFN-ThreeArmReach-v1.zip", trust_remote_code=True)
+    assert key == "ddpg" and type(model) is DDPG
 
 
 def test_a_zoo_run_folder_does_not_override_the_policy_the_file_names(env, tmp_path):

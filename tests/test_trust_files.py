@@ -189,14 +189,15 @@ import numpy as np, torch
 torch.set_num_threads(1)
 from vafn_sb3 import load_pretrained
 from vafn_sb3.common.serialization import load_weights
-from vafn_sb3.loading import _candidates, load_model
+from vafn_sb3.loading import load_model
+import vafn_sb3.registry  # imports every algorithm (sb3-contrib's included) before the measurements
 from vafn_media.images import canonical_strip
 from vafn_media.strips import render_strip
 
 def status_kb(field):
     return int(re.search(field + r":\s+(\d+)", open("/proc/self/status").read()).group(1))
 
-_candidates(); load_pretrained("sac"); canonical_strip(render_strip([1, 2], np.random.default_rng(0)))
+load_pretrained("sac"); canonical_strip(render_strip([1, 2], np.random.default_rng(0)))
 functions = {"model": load_model, "weights": load_weights, "image": canonical_strip, "array": canonical_strip}
 results = []
 for kind, argument in json.loads(sys.argv[1]):

@@ -17,19 +17,15 @@ from __future__ import annotations
 
 import warnings
 
-from stable_baselines3 import SAC, TD3
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 
 import vafn_gym  # noqa: F401  (registers the VAFN/* env IDs: `--gym-packages vafn_sb3` is enough)
-from vafn_sb3.common.agents import SharedAgentSACPolicy
-from vafn_sb3.maddpg.policies import MADDPGPolicy
+from vafn_sb3.registry import STOCK_POLICY_ALIASES
 
-#: Stock algorithm class -> the aliases it gains (DDPG inherits TD3's ``policy_aliases`` dict, so it gains them too).
-STOCK_ALIASES: dict[type[BaseAlgorithm], dict[str, type[BasePolicy]]] = {
-    SAC: {"SharedAgentPolicy": SharedAgentSACPolicy},
-    TD3: {"SharedAgentPolicy": MADDPGPolicy},
-}
+#: Stock algorithm class -> the aliases it gains (DDPG inherits TD3's ``policy_aliases`` dict, so it gains them too):
+#: the registry's :data:`~vafn_sb3.registry.STOCK_POLICY_ALIASES`.
+STOCK_ALIASES: dict[type[BaseAlgorithm], dict[str, type[BasePolicy]]] = STOCK_POLICY_ALIASES
 
 
 def register_stock_aliases() -> list[str]:

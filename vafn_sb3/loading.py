@@ -1,9 +1,10 @@
 """Load any saved policy (SB3 zip or weights-only file) without knowing its algorithm, and say what it was trained on.
 
 ``load_model`` reads the file's own description first: a weights-only file names its algorithm; an SB3 zip of MAML-SAC
-holds its meta-learning hyperparameters; an SB3 zip names its policy class, which narrows the algorithms to those with
-that policy; a zoo run's folder ``<algo>/<EnvName>_<N>/`` names the algorithm. The candidates are then tried in turn,
-the others after them; the error lists why each one refused the file.
+or MADDPG holds hyperparameters only that algorithm saves; an SB3 zip names its policy class, which narrows the
+algorithms to those with that policy; a zoo run's folder ``<algo>/<EnvName>_<N>/`` names the algorithm. The candidates
+(the registry's :data:`~vafn_sb3.registry.ALGORITHMS`) are then tried in turn, the others after them; the error lists
+why each one refused the file.
 
 No file runs code unless the caller says it trusts it: a weights-only file loads with :func:`load_weights` (nothing is
 unpickled); an SB3 zip, whose ``data`` entry is a pickle that runs code when loaded, is refused with a ``ValueError``
@@ -22,32 +23,16 @@ import zipfile
 from pathlib import Path
 from typing import Any
 
-#: Hyperparameters only MAML-SAC saves (an SB3 zip with them is a MAML-SAC model).
-MAML_KEYS = frozenset({"inner_steps", "meta_batch_size", "n_support", "n_query"})
+from vafn_sb3.common.save import MAX_JSON_ENTRY_BYTES, check_file_size, check_zip_directory
+from vafn_sb3.common.serialization import check_finite, load_weights
+from vafn_sb3.registry import ALGORITHMS, algorithm
+
 #: Env settings that define a task family: a policy trained with other values solves a different problem.
 FAMILY_KEYS = ("n_arms", "targets", "observe_goal", "inactive_arms", "robot", "frame", "waiting_goal")
 
 
-def _candidates() -> dict[str, type]:
-    """Algorithm key -> class, most specific first (vafn classes before SB3's)."""
-    from stable_baselines3 import PPO, TD3
-    from stable_baselines3 import SAC as SB3SAC
-
-    from vafn_sb3 import MAAC, MADDPG, MAMLSAC, MAPPO, MTSAC, SAC
-
-    candidates = {"maml_sac": MAMLSAC, "mtsac": MTSAC, "sac": SAC, "maac": MAAC, "maddpg": MADDPG, "mappo": MAPPO,
-                  "sb3_sac": SB3SAC, "td3": TD3, "ppo": PPO}
-    try:  # sb3-contrib comes with the [zoo] extra (rl_zoo3); its RecurrentPPO is the zoo's ppo_lstm
-        from sb3_contrib import RecurrentPPO
-    except ImportError:
-        return candidates
-    return {**candidates, "ppo_lstm": RecurrentPPO}
-
-
 def _zip_entries(path: Path) -> list[str]:
     """The zip's entry names, after its file and directory sizes are checked (nothing is inflated)."""
-    from vafn_sb3.common.serialization import check_file_size, check_zip_directory
-
     check_file_size(path, str(path))
     try:
         with zipfile.ZipFile(path) as archive:
@@ -88,11 +73,6 @@ def saved_policy_class(data: dict[str, Any]) -> tuple[str, str] | None:
     return strings[0], strings[1]
 
 
-def _policy_classes(algorithm: type) -> set[tuple[str, str]]:
-    """``(module, class name)`` of every policy an algorithm class accepts by alias."""
-    return {(policy.__module__, policy.__qualname__) for policy in algorithm.policy_aliases.values()}
-
-
 def untrusted_sb3_zip_error(path: str | Path) -> ValueError:
     """The refusal of an SB3 zip loaded without ``trust_remote_code``: what it is and the two ways on."""
     return ValueError(f"{path} is an SB3 model zip: its data entry is a pickle, which runs code when loaded; refused. "
@@ -104,7 +84,7 @@ def load_model(path: str | Path, algo: str | None = None, *, trust_remote_code: 
     """``(model, algorithm key)`` of the policy saved at ``path`` (``ValueError`` naming why it cannot load).
 
     :param path: a weights-only file (``vafn_sb3.save_weights``) or, trusted only, an SB3 ``.zip`` (``model.save``).
-    :param algo: force an algorithm key (sac, mtsac, maml_sac, maac, maddpg, mappo, td3, ppo, ppo_lstm).
+    :param algo: force an algorithm key (one of :data:`vafn_sb3.registry.ALGORITHMS`).
     :param trust_remote_code: load SB3 zips with SB3's ``load``, which unpickles the file: code in it runs. Without
         it only weights-only files load and an SB3 zip is refused.
     """
@@ -114,43 +94,41 @@ def load_model(path: str | Path, algo: str | None = None, *, trust_remote_code: 
     if not path.is_file():
         raise FileNotFoundError(f"no model file at {path}")
     names = _zip_entries(path)
-    candidates = _candidates()
-    if algo is not None and algo not in candidates:
-        raise ValueError(f"unknown algorithm {algo!r}; choose one of {sorted(candidates)}")
+    if algo is not None:
+        algorithm(algo)  # ValueError listing the keys when unknown
     if "data" not in names:  # weights-only format: it names its algorithm (load_weights says what a file lacks)
-        from vafn_sb3.common.serialization import load_weights
-
         model = load_weights(path)
         return model, type(model).__name__.lower()
     if not trust_remote_code:
         raise untrusted_sb3_zip_error(path)
-    return _load_trusted_sb3(path, algo, candidates)
+    return _load_trusted_sb3(path, algo)
 
 
-def _load_trusted_sb3(path: Path, algo: str | None, candidates: dict[str, type]) -> tuple[Any, str]:
+def _load_trusted_sb3(path: Path, algo: str | None) -> tuple[Any, str]:
     """``(model, key)`` of an SB3 zip through SB3's unpickling ``load`` (trusted files only), weights checked finite."""
     data = _sb3_data(path)
+    signed = [key for key, entry in ALGORITHMS.items() if entry.saved_keys and entry.saved_keys <= set(data)]
     if algo is not None:
         order = [algo]
-    elif MAML_KEYS <= set(data):
-        order = ["maml_sac"]
+    elif signed:  # hyperparameters only one algorithm saves (MAML-SAC's inner loop, MADDPG's exploration)
+        order = signed
     else:
         # Algorithms whose policies include the saved one first (another class may load the file and run it wrongly:
         # PPO would load a RecurrentPPO zip without its LSTM state), the zoo run's own algorithm first among them.
+        # An algorithm that saves keys of its own comes last on a zip without them (a DDPG zip is not MADDPG's).
+        unsigned = [key for key, entry in ALGORITHMS.items() if not entry.saved_keys]
         saved = saved_policy_class(data)
-        matching = [key for key in candidates if saved in _policy_classes(candidates[key])]
+        matching = [key for key in unsigned if saved in ALGORITHMS[key].policy_classes()]
         run_algo = path.parent.parent.name  # zoo layout <folder>/<algo>/<EnvName>_<N>/<EnvName>.zip
-        first = [run_algo] if run_algo in candidates and (not matching or run_algo in matching) else []
-        order = first + [key for key in matching + list(candidates) if key != "maml_sac"]
+        first = [run_algo] if run_algo in unsigned and (not matching or run_algo in matching) else []
+        order = first + matching + unsigned + [key for key in ALGORITHMS if key not in unsigned]
     failures = []
     for key in dict.fromkeys(order):
         try:
-            model = candidates[key].load(path, device="cpu")
+            model = ALGORITHMS[key].cls.load(path, device="cpu")
         except Exception as error:  # noqa: BLE001 - try the next algorithm; report all failures together
             failures.append(f"{key}: {type(error).__name__}: {str(error)[:120]}")
             continue
-        from vafn_sb3.common.serialization import check_finite
-
         check_finite(model.policy.state_dict(), str(path))
         return model, key
     raise ValueError(f"could not load {path} with any algorithm ({'; '.join(failures)}); pass the algorithm "
@@ -226,8 +204,6 @@ def training_env(path: str | Path) -> tuple[str | None, dict[str, Any]]:
 
 def _small_text(path: Path) -> str:
     """The text of a metadata file beside a model, ``ValueError`` naming it when it is larger than a config can be."""
-    from vafn_sb3.common.serialization import MAX_JSON_ENTRY_BYTES
-
     if path.stat().st_size > MAX_JSON_ENTRY_BYTES:
         raise ValueError(f"{path} is {path.stat().st_size:,} bytes; a config has at most {MAX_JSON_ENTRY_BYTES:,}")
     try:

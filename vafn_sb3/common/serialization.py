@@ -1,8 +1,8 @@
 """Safe model files: atomic writes for every save, and a weights-only format that loading cannot execute code from.
 
 - :func:`atomic_write` writes through a temporary file in the target's folder and renames it onto the target, so a crash
-  mid-write leaves the previous file intact; :class:`AtomicSaveMixin` routes SB3's ``save`` through it and makes
-  ``load`` reject truncated or incomplete zips with a ``ValueError`` naming the file.
+  mid-write leaves the previous file intact; :class:`~vafn_sb3.common.save.AtomicSaveMixin` routes SB3's ``save``
+  through it and makes ``load`` reject truncated or incomplete zips with a ``ValueError`` naming the file.
 - SB3's ``load`` unpickles (cloudpickle) the ``data`` entry of the zip, which can run arbitrary code from an untrusted
   file. :func:`save_weights` / :func:`load_weights` use a second format that needs no unpickling: one zip holding
   ``config.json`` (algorithm name, Box spaces, policy alias, JSON-safe ``policy_kwargs`` with classes stored by name,
@@ -23,7 +23,6 @@ import json
 import math
 import os
 import zipfile
-import zlib
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -38,13 +37,12 @@ from stable_baselines3.common.utils import ConstantSchedule, FloatSchedule, chec
 from torch import nn
 
 from vafn_gym.files import atomic_write  # re-exported: one implementation for every writer
+from vafn_sb3.common.save import CONFIG_ENTRY, POLICY_ENTRY, VARIABLES_ENTRY, check_zip_entries
+from vafn_sb3.registry import weights_classes
 
 #: ``format`` field of a weights file's ``config.json`` and the version this module writes and reads.
 WEIGHTS_FORMAT = "vafn-weights"
 WEIGHTS_VERSION = 1
-CONFIG_ENTRY = "config.json"
-POLICY_ENTRY = "policy.pt"
-VARIABLES_ENTRY = "variables.pt"
 #: Constructor parameters that are never stored as hyperparameters: given at load time, stored separately, or
 #: machine-specific.
 _NOT_HYPERPARAMETERS = frozenset(
@@ -52,14 +50,6 @@ _NOT_HYPERPARAMETERS = frozenset(
 )
 #: Box dtypes a weights file may declare.
 _SPACE_DTYPES = ("float32", "float64")
-#: Largest model file (bytes), checked before the zip is opened.
-MAX_MODEL_FILE_BYTES = 128 * 2**20
-#: Most entries a model zip may list.
-MAX_ZIP_ENTRIES = 64
-#: Largest uncompressed JSON entry (a weights file's ``config.json``, an SB3 zip's ``data``), from the zip directory.
-MAX_JSON_ENTRY_BYTES = 4 * 2**20
-#: Largest uncompressed tensor entry of a weights file (``policy.pt``, ``variables.pt``), from the zip directory.
-MAX_TENSOR_ENTRY_BYTES = 16 * 2**20
 #: Bounds of the sizes a weights config gives, checked before anything is allocated: units in a layer, layers in a
 #: network (items in any ``policy_kwargs`` list), critics, attention heads, elements of a Box space.
 MAX_LAYER_WIDTH = 4096
@@ -99,137 +89,9 @@ class _NotJSON(TypeError):
     """A value with no JSON form."""
 
 
-def sb3_zip_path(path: str | os.PathLike[str]) -> Path:
-    """The file SB3's ``save`` writes for ``path``: ``path`` itself, or ``path.zip`` when it has no suffix."""
-    path = Path(path)
-    return path if path.suffix else Path(f"{path}.zip")
-
-
-def check_model_zip(path: str | os.PathLike[str] | io.BufferedIOBase) -> None:
-    """Raise a ``ValueError`` naming the file unless it is a complete, uncorrupted SB3 model zip.
-
-    SB3 itself reports a zip without its ``data`` entry with a bare ``assert`` (which ``python -O`` removes). A missing
-    file is left to SB3's ``load`` (``FileNotFoundError``).
-
-    :param path: the model file (with or without its ``.zip`` suffix) or an open binary file.
-    """
-    if isinstance(path, io.BufferedIOBase):
-        position = path.tell()
-        try:
-            _check_zip_entries(path, repr(path), ("data", "policy.pth"))
-        finally:
-            path.seek(position)
-        return
-    file = Path(path)
-    if not file.exists() and Path(f"{file}.zip").exists():
-        file = Path(f"{file}.zip")
-    if file.is_file():
-        _check_zip_entries(file, str(file), ("data", "policy.pth"))
-
-
-def entry_limit(entry: str) -> int:
-    """Largest uncompressed size (bytes) a model zip's ``entry`` may declare in the zip directory."""
-    if entry in (CONFIG_ENTRY, "data"):
-        return MAX_JSON_ENTRY_BYTES
-    if entry in (POLICY_ENTRY, VARIABLES_ENTRY):
-        return MAX_TENSOR_ENTRY_BYTES
-    return MAX_MODEL_FILE_BYTES
-
-
-def check_zip_directory(archive: zipfile.ZipFile, name: str) -> None:
-    """``ValueError`` naming the file when its zip directory lists too many entries or one too large to inflate."""
-    entries = archive.infolist()
-    if len(entries) > MAX_ZIP_ENTRIES:
-        raise ValueError(f"{name} lists {len(entries)} zip entries; a model file has at most {MAX_ZIP_ENTRIES}")
-    for info in entries:
-        if info.file_size > entry_limit(info.filename):
-            raise ValueError(f"{name}: entry {info.filename!r} inflates to {info.file_size:,} bytes; at most "
-                             f"{entry_limit(info.filename):,} are read (refused without inflating it)")
-
-
-def check_file_size(path: Path, name: str) -> None:
-    """``ValueError`` naming the file when it is larger than :data:`MAX_MODEL_FILE_BYTES`."""
-    size = path.stat().st_size if path.is_file() else 0
-    if size > MAX_MODEL_FILE_BYTES:
-        raise ValueError(f"{name} is {size:,} bytes; a model file has at most {MAX_MODEL_FILE_BYTES:,}")
-
-
-def _check_zip_entries(file: Path | io.BufferedIOBase, name: str, required: tuple[str, ...],
-                       bounded: bool = False) -> list[str]:
-    """The zip's entry names after checking it is readable, complete and (``bounded``) within the size limits."""
-    if bounded and isinstance(file, Path):
-        check_file_size(file, name)
-    try:
-        with zipfile.ZipFile(file) as archive:
-            if bounded:
-                check_zip_directory(archive, name)
-            entries = archive.namelist()
-            corrupt = archive.testzip()
-    except (zipfile.BadZipFile, zlib.error, EOFError) as error:
-        raise ValueError(f"{name} is not a readable model file (truncated or corrupt zip): {error}") from error
-    if corrupt is not None:
-        raise ValueError(f"{name} is corrupt: entry {corrupt!r} fails its checksum")
-    missing = [entry for entry in required if entry not in entries]
-    if missing:
-        raise ValueError(f"{name} is incomplete: no {', '.join(missing)} entry (an interrupted or partial save?)")
-    return entries
-
-
-class AtomicSaveMixin:
-    """Algorithm mixin (first in the bases): atomic ``save``; ``load`` rejects broken files with a ValueError."""
-
-    def save(
-        self,
-        path: str | os.PathLike[str] | io.BufferedIOBase,
-        exclude: list[str] | None = None,
-        include: list[str] | None = None,
-    ) -> None:
-        """SB3's ``save`` through :func:`atomic_write` (paths only): a crash mid-save keeps the previous file."""
-        save = super().save  # type: ignore[misc]
-        if isinstance(path, io.BufferedIOBase):
-            save(path, exclude, include)
-        else:
-            atomic_write(sb3_zip_path(path), lambda tmp: save(tmp, exclude, include))
-
-    @classmethod
-    def load(
-        cls,
-        path: str | os.PathLike[str] | io.BufferedIOBase,
-        env: Any = None,
-        device: th.device | str = "auto",
-        custom_objects: dict[str, Any] | None = None,
-        print_system_info: bool = False,
-        force_reset: bool = True,
-        **kwargs: Any,
-    ) -> Any:
-        """SB3's ``load`` (which unpickles: trusted files only) after :func:`check_model_zip`."""
-        check_model_zip(path)
-        return super().load(  # type: ignore[misc]
-            path, env=env, device=device, custom_objects=custom_objects, print_system_info=print_system_info,
-            force_reset=force_reset, **kwargs,
-        )
-
-
-# --- weights-only files ---------------------------------------------------------------------------------------------
-
-
-def _algorithms() -> dict[str, type[BaseAlgorithm]]:
-    # Imported here, not at module level: the vafn algorithms import this module for AtomicSaveMixin.
-    from stable_baselines3 import PPO, TD3
-
-    from vafn_sb3.maac import MAAC
-    from vafn_sb3.maddpg import MADDPG
-    from vafn_sb3.maml_sac import MAMLSAC
-    from vafn_sb3.mappo import MAPPO
-    from vafn_sb3.mtsac import MTSAC
-    from vafn_sb3.sac import SAC  # SB3's SAC plus the shared per-arm actor alias; reads SB3 SAC files too
-
-    return {cls.__name__: cls for cls in (SAC, TD3, PPO, MAAC, MADDPG, MAMLSAC, MAPPO, MTSAC)}
-
-
 def weights_algorithms() -> list[str]:
     """Names of the algorithms :func:`save_weights` and :func:`load_weights` support."""
-    return sorted(_algorithms())
+    return sorted(weights_classes())
 
 
 def _to_json(value: Any) -> Any:
@@ -325,7 +187,7 @@ def _decode_space(encoded: Any) -> spaces.Box:
 def weights_config(model: BaseAlgorithm) -> dict[str, Any]:
     """The ``config.json`` of :func:`save_weights`; ``ValueError`` if the model cannot be rebuilt from JSON alone."""
     name = type(model).__name__
-    registered = _algorithms().get(name)
+    registered = weights_classes().get(name)
     if registered is None or not issubclass(registered, type(model)):  # vafn's SAC also reads SB3 SAC models
         raise ValueError(f"weights files support {weights_algorithms()}, got {type(model).__qualname__}")
     hyperparameters, not_saved = {}, []
@@ -494,7 +356,7 @@ def load_weights(path: str | os.PathLike[str], env: Any = None, device: th.devic
     :return: the model, with its policy weights and pytorch variables (entropy coefficient, ...) loaded.
     """
     name = str(path)
-    entries = _check_zip_entries(Path(path), name, (), bounded=True)
+    entries = check_zip_entries(Path(path), name, (), bounded=True)
     if CONFIG_ENTRY not in entries or POLICY_ENTRY not in entries:
         hint = " (an SB3 model zip: load it with the algorithm's load, trusted files only)" if "data" in entries else ""
         raise ValueError(f"{name} is not a weights file: it needs {CONFIG_ENTRY} and {POLICY_ENTRY}{hint}")
@@ -504,7 +366,7 @@ def load_weights(path: str | os.PathLike[str], env: Any = None, device: th.devic
         policy_state = _read_tensors(archive, POLICY_ENTRY, name, device)
         variables = _read_tensors(archive, VARIABLES_ENTRY, name, device) if VARIABLES_ENTRY in entries else {}
 
-    algorithms = _algorithms()
+    algorithms = weights_classes()
     cls = algorithms.get(config.get("algorithm"))  # type: ignore[arg-type]
     if cls is None:
         raise ValueError(f"{name}: unknown algorithm {config.get('algorithm')!r}; supported: {sorted(algorithms)}")

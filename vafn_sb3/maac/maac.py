@@ -14,7 +14,7 @@ from stable_baselines3.common.utils import polyak_update
 
 from vafn_sb3.common.agents import clipped_step, frozen
 from vafn_sb3.common.finetune import FineTuneAdaptation
-from vafn_sb3.common.serialization import AtomicSaveMixin
+from vafn_sb3.common.save import AtomicSaveMixin
 from vafn_sb3.maac.policies import AttentionCritic, MAACPolicy
 
 SelfMAAC = TypeVar("SelfMAAC", bound="MAAC")

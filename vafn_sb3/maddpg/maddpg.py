@@ -15,7 +15,7 @@ from stable_baselines3.common.utils import polyak_update
 
 from vafn_sb3.common.agents import clipped_step, frozen, substitute_agent_actions
 from vafn_sb3.common.finetune import FineTuneAdaptation, GaussianExplorationPolicy
-from vafn_sb3.common.serialization import AtomicSaveMixin
+from vafn_sb3.common.save import AtomicSaveMixin
 from vafn_sb3.maddpg.policies import MADDPGPolicy
 
 SelfMADDPG = TypeVar("SelfMADDPG", bound="MADDPG")

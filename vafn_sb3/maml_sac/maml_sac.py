@@ -49,7 +49,7 @@ from torch.func import vmap
 from vafn_gym.instructions import Instruction
 from vafn_gym.tasks import TaskSampler
 from vafn_sb3.common.adaptation import SupportSet, collect_support, is_task_list, seeded_torch_stream
-from vafn_sb3.common.serialization import AtomicSaveMixin
+from vafn_sb3.common.save import AtomicSaveMixin
 from vafn_sb3.maml_sac.buffers import TaskRolloutBuffer
 from vafn_sb3.maml_sac.functional import inner_adapt, query_losses
 from vafn_sb3.maml_sac.nstep import nstep_targets, stack_supports

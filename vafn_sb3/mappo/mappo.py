@@ -13,7 +13,7 @@ from stable_baselines3.common.type_aliases import MaybeCallback
 
 from vafn_sb3.common.adaptation import SupportSet
 from vafn_sb3.common.finetune import FineTuneAdaptation
-from vafn_sb3.common.serialization import AtomicSaveMixin
+from vafn_sb3.common.save import AtomicSaveMixin
 from vafn_sb3.mappo.policies import AgentRolloutBuffer, MAPPOPolicy
 
 SelfMAPPO = TypeVar("SelfMAPPO", bound="MAPPO")

@@ -9,7 +9,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import MaybeCallback
 
 from vafn_sb3.common.finetune import FineTuneAdaptation
-from vafn_sb3.common.serialization import AtomicSaveMixin
+from vafn_sb3.common.save import AtomicSaveMixin
 from vafn_sb3.sac.lean import LeanSACMixin
 from vafn_sb3.sac.policies import MlpPolicy, SharedAgentPolicy
 

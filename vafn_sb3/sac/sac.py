@@ -8,7 +8,7 @@ from typing import ClassVar
 from stable_baselines3 import SAC as SB3SAC
 from stable_baselines3.common.policies import BasePolicy
 
-from vafn_sb3.common.serialization import AtomicSaveMixin
+from vafn_sb3.common.save import AtomicSaveMixin
 from vafn_sb3.sac.lean import LeanSACMixin
 from vafn_sb3.sac.policies import MlpPolicy, SharedAgentPolicy
 
