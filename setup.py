@@ -35,7 +35,8 @@ setup(
     description="VA-FastNavi-MARL: multimedia-driven meta-reinforcement learning for three PyBullet arms",
     long_description=open("README.md", encoding="utf-8").read(),
     long_description_content_type="text/markdown",
-    packages=find_packages(include=["vafn_gym", "vafn_gym.*", "vafn_sb3", "vafn_sb3.*", "vafn_media", "vafn_media.*"]),
+    packages=find_packages(include=["vafn_gym", "vafn_gym.*", "vafn_sb3", "vafn_sb3.*", "vafn_media", "vafn_media.*",
+                                    "vafn_app", "vafn_app.*"]),
     package_data={
         "vafn_media": ["checkpoints/*.pt", "checkpoints/*.json"],
         "vafn_sb3": ["pretrained/*.zip", "pretrained/*.json", "pretrained/estimators/*.pt",
@@ -54,5 +55,5 @@ setup(
         "scipy>=1.10",
     ],
     extras_require=EXTRAS,
-    entry_points={"console_scripts": ["vafn-instruct=vafn_media.cli:main", "vafn-demo=vafn_sb3.demo:main"]},
+    entry_points={"console_scripts": ["vafn-instruct=vafn_media.cli:main", "vafn-demo=vafn_app.demo:main"]},
 )

@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("librosa")
 pytest.importorskip("cv2")
 
-from vafn_sb3 import demo  # noqa: E402
+from vafn_app import demo  # noqa: E402
 
 
 class _Doubtful:

@@ -142,7 +142,7 @@ def test_missing_sounddevice_is_one_clear_line(monkeypatch: pytest.MonkeyPatch, 
         live.open_source(None)
     with pytest.raises(live.LiveInputError, match="no such file"):
         live.open_source(str(tmp_path / "missing.wav"))
-    from vafn_sb3 import demo
+    from vafn_app import demo
 
     assert demo.main(["--listen", "--out", str(tmp_path)]) == 2
     errors = capsys.readouterr().err.strip().splitlines()
@@ -154,7 +154,7 @@ def test_demo_listen_file_drives_the_arms(tmp_path: Path, capsys: pytest.Capture
     import soundfile
 
     from vafn_media.speech import ESPEAK_SAMPLE_RATE, speak
-    from vafn_sb3 import demo
+    from vafn_app import demo
 
     silence = np.zeros(int(0.5 * ESPEAK_SAMPLE_RATE), np.float32)
     path = tmp_path / "spoken.wav"

@@ -283,7 +283,7 @@ def test_an_image_opencv_cannot_decode_drops_only_that_modality(tmp_path: Path) 
 
 def test_vafn_demo_bad_input_is_exit_2_and_one_line(weights: Path, tmp_path: Path,
                                                     capsys: pytest.CaptureFixture[str]) -> None:
-    from vafn_sb3 import demo
+    from vafn_app import demo
 
     for argv, words in ((["--size", "5000", "300"], "--size 5000 300"), (["--bogus"], "unrecognized arguments")):
         with pytest.raises(SystemExit) as exit_info:

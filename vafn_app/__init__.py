@@ -1,0 +1,1 @@
+"""vafn_app: applications that wire the layers together (``vafn-demo``); it may import every vafn package."""
