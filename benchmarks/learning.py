@@ -2,11 +2,13 @@
 
     python benchmarks/learning.py --algo sac --env VAFN/ThreeArmReach-v1 --seeds 0 1 2 --steps 50000
 
-Every ``--eval-every`` env steps the policy runs once on ``--n-eval`` held-out test instructions (lengths 1-10, from
-:class:`vafn_gym.InstructionBenchmark`); at the end on all ``--n-test``. Writes ``<out>/<algo>_<env>_curves.csv``
-(one row per seed and evaluation) and ``<out>/<algo>_<env>_summary.json`` (final success / collision / episode length
-with 95 % CIs over seeds, env steps to first cross 0.95, wall and CPU time), and prints them. Training uses one
-torch thread. ``--save DIR`` keeps each seed's final model (SB3 zip) for ``benchmarks/export_pretrained.py``.
+Every ``--eval-every`` env steps the policy runs once on ``--n-eval`` validation instructions (lengths 1-10, the
+validation suite of :class:`vafn_gym.InstructionBenchmark`; the curve a run is watched and tuned on); at the end on
+``--n-test`` held-out test instructions (the versioned test suite, 200 distinct). Writes
+``<out>/<algo>_<env>_curves.csv`` (one row per seed and evaluation, its ``split`` named) and
+``<out>/<algo>_<env>_summary.json`` (final test success / collision / episode length with 95 % CIs over seeds, env
+steps to first cross 0.95, wall and CPU time), and prints them. Training uses one torch thread. ``--save DIR`` keeps
+each seed's final model (SB3 zip) for ``benchmarks/export_pretrained.py``.
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ def training_env_wrapper(args: argparse.Namespace) -> Callable[[gym.Env], gym.En
 
 
 def train_one(args: argparse.Namespace, seed: int, benchmark: InstructionBenchmark) -> tuple[list[dict], object]:
-    """Train one seed; returns its evaluation rows (the last one on every test task) and the model."""
+    """Train one seed; returns its evaluation rows (validation ones, the last one on the test suite) and the model."""
     kwargs, yaml_steps, policy = load_hyperparams(args.algo, args.env)
     kwargs.update({key: value for key, value in args.hyperparams.items() if key not in ("env_kwargs", "env_wrapper")})
     env = gym.make(args.env, max_length=args.train_max_length, **training_env_kwargs(args))
@@ -69,9 +71,9 @@ def train_one(args: argparse.Namespace, seed: int, benchmark: InstructionBenchma
             bar.update(model.num_timesteps - before)
             final = model.num_timesteps >= steps
             wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0  # evaluation time included
-            n_tasks = args.n_test if final else args.n_eval
-            metrics = episode_rates(benchmark.evaluate(model, n_tasks=n_tasks))
-            rows.append({"seed": seed, "timesteps": model.num_timesteps, "n_tasks": n_tasks,
+            n_tasks, split = (args.n_test, "test") if final else (args.n_eval, "validation")
+            metrics = episode_rates(benchmark.evaluate(model, n_tasks=n_tasks, split=split))
+            rows.append({"seed": seed, "timesteps": model.num_timesteps, "n_tasks": n_tasks, "split": split,
                          "wall_s": round(wall, 1), "cpu_s": round(cpu, 1), **metrics})
             bar.set_postfix(success=f"{metrics['success']:.2f}", collision=f"{metrics['collision']:.2f}")
     env.close()
@@ -81,7 +83,8 @@ def train_one(args: argparse.Namespace, seed: int, benchmark: InstructionBenchma
 def read_curves(path: Path, exclude: list[int]) -> list[dict]:
     """Rows of an existing curves file (numbers parsed), without the seeds in ``exclude``."""
     with path.open(newline="") as handle:
-        rows = [{k: (float(v) if k not in ("seed", "timesteps", "n_tasks") else int(v)) for k, v in row.items()}
+        rows = [{k: (v if k == "split" else float(v) if k not in ("seed", "timesteps", "n_tasks") else int(v))
+                 for k, v in row.items()}
                 for row in csv.DictReader(handle)]
     return [row for row in rows if row["seed"] not in exclude]
 
@@ -115,8 +118,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=None, help="env steps per seed (default: the YAML's n_timesteps)")
     parser.add_argument("--train-max-length", type=int, default=3, help="longest training instruction")
     parser.add_argument("--eval-every", type=int, default=10_000, help="env steps between evaluations")
-    parser.add_argument("--n-eval", type=int, default=30, help="test instructions per intermediate evaluation")
-    parser.add_argument("--n-test", type=int, default=100, help="test instructions of the final evaluation")
+    parser.add_argument("--n-eval", type=int, default=30, help="validation instructions per intermediate evaluation")
+    parser.add_argument("--n-test", type=int, default=200, help="test instructions of the final evaluation")
     parser.add_argument("--out", type=Path, default=REPO_ROOT / "results" / "learning", help="output folder")
     parser.add_argument("--tag", default="", help="suffix of the output files")
     parser.add_argument("--save", type=Path, default=None, help="folder for each seed's final model")

@@ -1,9 +1,13 @@
 """Training callbacks: success / collision rates during evaluation and rollouts, and meta-evaluation after adaptation.
 
-* :class:`SuccessCollisionEvalCallback` is SB3's ``EvalCallback`` that also logs ``eval/collision_rate`` and stores
-  ``collisions`` in ``evaluations.npz`` (success comes from ``info["is_success"]`` as in SB3).
+Training-time evaluations score the *validation* suite (:func:`vafn_gym.benchmarks.suite_tasks`), never the held-out
+test suite, through the one protocol of :mod:`vafn_gym.benchmarks` (its runner, seed function and collision key).
+
+* :class:`SuccessCollisionEvalCallback` is SB3's ``EvalCallback`` (same arguments, logs, best model and
+  ``evaluations.npz``) whose episodes run through :func:`vafn_gym.benchmarks.evaluate_tasks`; it also logs
+  ``eval/collision_rate`` and stores ``collisions`` in ``evaluations.npz``.
 * :class:`RolloutCollisionCallback` logs ``rollout/collision_rate`` over the last training episodes.
-* :class:`MetaEvalCallback` measures post-adaptation return / success / collision on held-out instructions through
+* :class:`MetaEvalCallback` measures post-adaptation return / success / collision on validation instructions through
   :func:`vafn_sb3.common.adaptation.evaluate_adaptation`, for MAML-SAC and the baselines alike.
 """
 
@@ -15,9 +19,12 @@ from collections import deque
 from collections.abc import Sequence
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
+from stable_baselines3.common.vec_env import sync_envs_normalization, unwrap_vec_normalize
 
+from vafn_gym.benchmarks import COLLISION_KEY, episode_collided, evaluate_tasks, run_episode, episode_seed, suite_tasks
 from vafn_sb3.common.adaptation import evaluate_adaptation
 
 #: Episodes averaged by the rollout collision rate (SB3's own rollout buffers hold 100 episodes).
@@ -25,54 +32,102 @@ ROLLOUT_WINDOW = 100
 
 
 def _episode_collided(info: dict[str, Any]) -> bool | None:
-    value = info.get("collided")
-    return None if value is None else bool(value)
+    return episode_collided(info) if COLLISION_KEY in info else None
 
 
 class SuccessCollisionEvalCallback(EvalCallback):
-    """``EvalCallback`` that also reports the fraction of evaluation episodes with any arm-arm contact."""
+    """``EvalCallback`` whose episodes are the one protocol's, and which also reports the collision rate.
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
+    On a VAFN env evaluation ``j`` runs the first ``n_eval_episodes`` instructions of the env's validation suite (task
+    ``i`` resets with ``episode_seed(seed, i)``, every evaluation the same), on a single env made from the evaluation
+    env's spec; on any other env, ``n_eval_episodes`` episodes seeded the same way. With ``VecNormalize`` the
+    observations are normalised by the evaluation env's statistics (synchronised with the training env's first).
+
+    :param seed: seed of the episode resets (and hidden targets) of every evaluation.
+    """
+
+    def __init__(self, *args: Any, seed: int = 0, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        self._collision_buffer: list[bool] = []
+        self.seed = seed
         self.evaluations_collisions: list[list[bool]] = []
+        self._env: gym.Env | None = None
+        self._tasks: list[Any] | None = None
 
-    def _log_success_callback(self, locals_: dict[str, Any], globals_: dict[str, Any]) -> None:
-        """Collect success (SB3) and collision at each finished evaluation episode."""
-        super()._log_success_callback(locals_, globals_)
-        if not locals_["done"]:
-            return
-        collided = _episode_collided(locals_["info"])
-        if collided is not None:
-            self._collision_buffer.append(collided)
-            # Recorded on every episode so the value dumped right after evaluate_policy is the full-evaluation mean.
-            self.logger.record("eval/collision_rate", float(np.mean(self._collision_buffer)))
+    def _single_env(self) -> gym.Env:
+        """One (non-vectorised) env like the evaluation env's, made once from its spec."""
+        if self._env is None:
+            spec = self.eval_env.get_attr("spec")[0]
+            if spec is None:
+                raise ValueError("SuccessCollisionEvalCallback needs an evaluation env made from a registered ID")
+            self._env = gym.make(spec)
+            if callable(getattr(self._env.unwrapped, "set_task", None)):
+                self._tasks = suite_tasks(self._env, "validation", self.seed, n=self.n_eval_episodes)
+        return self._env
+
+    def _episodes(self) -> list[dict[str, Any]]:
+        """This evaluation's :func:`~vafn_gym.benchmarks.run_episode` rows."""
+        env = self._single_env()
+        transform = None
+        if self.model.get_vec_normalize_env() is not None:
+            sync_envs_normalization(self.training_env, self.eval_env)
+            normalizer = unwrap_vec_normalize(self.eval_env)
+            transform = None if normalizer is None else normalizer.normalize_obs
+        if self._tasks is not None:
+            return evaluate_tasks(self.model, env, self._tasks, self.seed, self.deterministic, transform)
+        return [run_episode(self.model, env, episode_seed(self.seed, index), self.deterministic, transform)
+                for index in range(self.n_eval_episodes)]
 
     def _on_step(self) -> bool:
-        evaluating = self.eval_freq > 0 and self.n_calls % self.eval_freq == 0
-        if evaluating:
-            self._collision_buffer = []
-        continue_training = super()._on_step()
-        if evaluating and self._collision_buffer:
-            self.evaluations_collisions.append(list(self._collision_buffer))
+        if not (self.eval_freq > 0 and self.n_calls % self.eval_freq == 0):
+            return True
+        rows = self._episodes()
+        rewards, lengths = [row["return"] for row in rows], [row["steps"] for row in rows]
+        vafn = self._tasks is not None
+        successes, collisions = [bool(row["success"]) for row in rows], [bool(row["collision"]) for row in rows]
+        if self.log_path is not None:
+            self.evaluations_timesteps.append(self.num_timesteps)
+            self.evaluations_results.append(rewards)
+            self.evaluations_length.append(lengths)
+            extra: dict[str, Any] = {}
+            if vafn:
+                self.evaluations_successes.append(successes)
+                self.evaluations_collisions.append(collisions)
+                extra = {"successes": self.evaluations_successes, "collisions": self.evaluations_collisions}
+            np.savez(self.log_path, timesteps=self.evaluations_timesteps, results=self.evaluations_results,
+                     ep_lengths=self.evaluations_length, **extra)
+        mean_reward = float(np.mean(rewards))
+        self.last_mean_reward = mean_reward
+        if self.verbose >= 1:
+            print(f"Eval num_timesteps={self.num_timesteps}, "
+                  f"episode_reward={mean_reward:.2f} +/- {np.std(rewards):.2f}")
+            print(f"Episode length: {np.mean(lengths):.2f} +/- {np.std(lengths):.2f}")
+        self.logger.record("eval/mean_reward", mean_reward)
+        self.logger.record("eval/mean_ep_length", float(np.mean(lengths)))
+        if vafn:
+            self.logger.record("eval/success_rate", float(np.mean(successes)))
+            self.logger.record("eval/collision_rate", float(np.mean(collisions)))
             if self.verbose >= 1:
-                print(f"Collision rate: {100 * np.mean(self._collision_buffer):.2f}%")
-            if self.log_path is not None:
-                self._save_with_collisions()
+                print(f"Success rate: {100 * np.mean(successes):.2f}%")
+                print(f"Collision rate: {100 * np.mean(collisions):.2f}%")
+        self.logger.record("time/total_timesteps", self.num_timesteps, exclude="tensorboard")
+        self.logger.dump(self.num_timesteps)
+        continue_training = True
+        if mean_reward > self.best_mean_reward:
+            if self.verbose >= 1:
+                print("New best mean reward!")
+            if self.best_model_save_path is not None:
+                self.model.save(os.path.join(self.best_model_save_path, "best_model"))
+            self.best_mean_reward = mean_reward
+            if self.callback_on_new_best is not None:
+                continue_training = self.callback_on_new_best.on_step()
+        if self.callback is not None:
+            continue_training = continue_training and self._on_event()
         return continue_training
 
-    def _save_with_collisions(self) -> None:
-        assert self.log_path is not None
-        extra: dict[str, Any] = {"collisions": self.evaluations_collisions}
-        if self.evaluations_successes:
-            extra["successes"] = self.evaluations_successes
-        np.savez(
-            self.log_path,
-            timesteps=self.evaluations_timesteps,
-            results=self.evaluations_results,
-            ep_lengths=self.evaluations_length,
-            **extra,
-        )
+    def _on_training_end(self) -> None:
+        if self._env is not None:
+            self._env.close()
+            self._env = None
 
 
 class RolloutCollisionCallback(BaseCallback):
@@ -101,19 +156,20 @@ def _training_env_id(callback: BaseCallback) -> str:
 class MetaEvalCallback(BaseCallback):
     """Every ``eval_freq`` calls, adapt to held-out instructions and log post-adaptation performance per K.
 
-    Logs ``meta/return_k{K}``, ``meta/success_k{K}`` and ``meta/collision_k{K}`` and appends rows to
+    The instructions are the first ``n_tasks`` of the env's validation suite in the length range (never the held-out
+    test suite). Logs ``meta/return_k{K}``, ``meta/success_k{K}`` and ``meta/collision_k{K}`` and appends rows to
     ``<log_path>/meta_evaluations.csv``. Works for any model with ``adapt(env, task, n_support, k, seed)``.
 
     :param eval_freq: callback calls (env steps / n_envs) between meta-evaluations.
     :param k_values: adaptation-step counts to evaluate (0 = unadapted).
-    :param n_tasks: held-out instructions per meta-evaluation (a fixed set, the same every time).
+    :param n_tasks: validation instructions per meta-evaluation (a fixed set, the same every time).
     :param n_support: support transitions collected before adapting.
-    :param min_length: shortest held-out instruction.
-    :param max_length: longest held-out instruction.
+    :param min_length: shortest validation instruction.
+    :param max_length: longest validation instruction.
     :param n_eval_episodes: evaluation episodes per task and K.
     :param env_id: env to evaluate on (default: the training env's ID).
     :param env_kwargs: extra kwargs for the evaluation envs.
-    :param seed: seed of the held-out set and of adaptation.
+    :param seed: seed of the hidden targets, the episode resets and adaptation.
     :param log_path: folder of ``meta_evaluations.csv`` (default: the logger's folder, if any).
     """
 
@@ -152,18 +208,12 @@ class MetaEvalCallback(BaseCallback):
         self.rows: list[dict[str, Any]] = []
 
     def _init_callback(self) -> None:
-        from vafn_gym.benchmarks import InstructionBenchmark
-
         self.env_id = self.env_id or _training_env_id(self)
-        benchmark = InstructionBenchmark(
-            self.env_id,
-            self.min_length,
-            self.max_length,
-            n_test=self.n_tasks,
-            seed=self.seed,
-            env_kwargs=self.env_kwargs,
-        )
-        self.tasks = benchmark.test_tasks
+        env = gym.make(self.env_id, **self.env_kwargs)
+        try:
+            self.tasks = suite_tasks(env, "validation", self.seed, self.min_length, self.max_length, self.n_tasks)
+        finally:
+            env.close()
         if self.log_path is None and self.logger is not None and self.logger.dir:
             self.log_path = self.logger.dir
 

@@ -8,9 +8,9 @@
 
 The model is found like ``python -m rl_zoo3.enjoy`` finds it (``-f/--exp-id/--load-best``); the env kwargs and
 VecNormalize statistics saved with the run are reused. Runs one episode (one instruction) by default; recorded frames
-carry the overlay of :mod:`vafn_gym.overlay`. Prints return, success and collision per episode. With
-``--n-test N`` it instead scores the policy on the first N held-out test instructions of
-:class:`vafn_gym.InstructionBenchmark` (the protocol of every curve in the project).
+carry the overlay of :mod:`vafn_gym.overlay`. Prints return, success and collision per episode (each episode is
+:func:`vafn_gym.run_episode`). With ``--n-test N`` it instead scores the policy on the first N instructions of the
+held-out suite of :class:`vafn_gym.InstructionBenchmark` (the protocol of every curve in the project; 200 in all).
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize  # noqa: 
 from tqdm import tqdm  # noqa: E402
 
 import vafn_gym  # noqa: E402
+from vafn_gym.benchmarks import episode_seed, run_episode  # noqa: E402
 from vafn_gym.overlay import VIDEO_SUFFIXES, FrameOverlay, VideoWriter  # noqa: E402
 from vafn_media.cli import OneLineParser  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
@@ -72,13 +73,13 @@ class RecordingWrapper(gym.Wrapper):
         self.writer.append(self.overlay(self.env.render(), info))
 
     def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict]:
-        """Reset; the episode's first frame is recorded when it starts stepping (the vec env resets ahead)."""
+        """Reset; the episode's first frame is recorded when it starts stepping."""
         obs, info = self.env.reset(**kwargs)
         self._first = info
         return obs, info
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
-        """Step; record the frame when it is due or the episode ended (before the vec env resets it)."""
+        """Step; record the frame when it is due or the episode ended."""
         if self._first is not None:
             self._record(self._first)
             self._first = None
@@ -103,6 +104,7 @@ def run(
 ) -> list[dict[str, float]]:
     """Roll ``policy`` for ``n_episodes`` episodes (or ``n_steps`` env steps when given, whichever ends first).
 
+    Each episode is :func:`vafn_gym.run_episode` (episode ``e`` resets with ``vafn_gym.episode_seed(seed, e)``).
     Returns one ``{return, success, collision, length}`` per finished episode. With ``record`` the labelled frames
     stream to the video file as they are rendered (nothing is held in memory).
     """
@@ -111,40 +113,33 @@ def run(
     mode = "rgb_array" if record is not None else render_mode
     fps = max(1.0, vafn_gym.MultiArmEnv.metadata["render_fps"] / frame_skip)  # real-time playback
     writer = VideoWriter(record, fps) if record is not None else None
-
-    def make_env() -> gym.Env:
-        env = gym.make(env_id, render_mode=mode, **env_kwargs)
-        return RecordingWrapper(env, writer, frame_skip) if writer is not None else env
-
-    venv = DummyVecEnv([make_env])
-    if stats_path is not None:
-        venv = VecNormalize.load(stats_path, venv)
-        venv.training, venv.norm_reward = False, False
-    venv.seed(seed)
-    obs = venv.reset()
+    env = gym.make(env_id, render_mode=mode, **env_kwargs)
+    if writer is not None:
+        env = RecordingWrapper(env, writer, frame_skip)
+    transform = None
+    if stats_path is not None:  # the run's observation statistics, frozen
+        normalizer = VecNormalize.load(stats_path, DummyVecEnv([lambda: env]))
+        normalizer.training, normalizer.norm_reward = False, False
+        transform = normalizer.normalize_obs
     episodes: list[dict[str, float]] = []
-    total, length, step = 0.0, 0, 0
+    step = 0
     bar = tqdm(total=n_episodes, desc="episodes", unit="episode", disable=n_episodes < 2 and writer is None)
     try:
         while len(episodes) < n_episodes and (n_steps is None or step < n_steps):
-            action, _ = policy.predict(obs, deterministic=deterministic)
-            obs, reward, done, info = venv.step(action)
-            total += float(reward[0])
-            length += 1
-            step += 1
-            if done[0]:
-                episode = {"return": total, "success": float(info[0].get("is_success", False)),
-                           "collision": float(info[0].get("collided", False)), "length": float(length)}
-                episodes.append(episode)
-                bar.update(1)
-                tqdm.write(f"episode {len(episodes)}: return {total:.2f}, success {episode['success']:.0f}, "
-                           f"collision {episode['collision']:.0f}, length {length}")
-                total, length = 0.0, 0
-                if callable(getattr(policy, "reset", None)):
-                    policy.reset()
+            row = run_episode(policy, env, episode_seed(seed, len(episodes)), deterministic, transform,
+                              max_steps=None if n_steps is None else n_steps - step)
+            step += row["steps"]
+            if row["outcome"] == "unfinished":
+                break
+            episode = {"return": row["return"], "success": row["success"], "collision": row["collision"],
+                       "length": float(row["steps"])}
+            episodes.append(episode)
+            bar.update(1)
+            tqdm.write(f"episode {len(episodes)}: return {episode['return']:.2f}, success {episode['success']:.0f}, "
+                       f"collision {episode['collision']:.0f}, length {row['steps']}")
     finally:
         bar.close()
-        venv.close()
+        env.close()
         if writer is not None and writer.n_frames:
             path = writer.close()
             print(f"wrote {path.resolve()} ({writer.n_frames} frames at {writer.fps:g} fps, "
@@ -153,7 +148,8 @@ def run(
 
 
 def evaluate_held_out(policy: Any, env_id: str, env_kwargs: dict, n_test: int) -> list[dict[str, Any]]:
-    """Score ``policy`` once on each of ``n_test`` held-out test instructions (lengths 1-10) and print the rates."""
+    """Score ``policy`` once on each of the first ``n_test`` held-out test instructions (the versioned suite, lengths
+    1-10) and print the rates."""
     rows = vafn_gym.InstructionBenchmark(env_id, n_test=n_test, env_kwargs=env_kwargs).evaluate(policy)
     rates = vafn_gym.episode_rates(rows)
     print(f"{env_id}: success {rates['success']:.3f}, collision rate {rates['collision']:.3f} "

@@ -30,6 +30,7 @@ from rl_zoo3.exp_manager import ExperimentManager
 from rl_zoo3.hyperparams_opt import HYPERPARAMS_SAMPLER
 from stable_baselines3.common.callbacks import EvalCallback
 
+from vafn_gym.benchmarks import COLLISION_KEY
 from vafn_sb3.callbacks import RolloutCollisionCallback, SuccessCollisionEvalCallback
 from zoo.tuning import (
     HEARTBEAT_INTERVAL_S,
@@ -43,7 +44,7 @@ from zoo.tuning import (
 )
 
 #: Monitor columns written for VAFN envs (success and "any collision this episode").
-VAFN_INFO_KEYWORDS = ("is_success", "collided")
+VAFN_INFO_KEYWORDS = ("is_success", COLLISION_KEY)
 #: Hyperparameter key carrying a stored trial's policy_kwargs until they are merged with the YAML's.
 TUNED_POLICY_KWARGS = "tuned_policy_kwargs"
 

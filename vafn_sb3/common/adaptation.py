@@ -23,7 +23,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from vafn_gym.benchmarks import run_episode
+from vafn_gym.benchmarks import EPISODES_PER_TASK, episode_seed, run_episode
 from vafn_gym.constants import PHASE_EXECUTING, PHASE_INDEX
 from vafn_gym.instructions import Instruction
 
@@ -41,8 +41,6 @@ __all__ = [
     "support_coverage",
 ]
 
-#: Offset between the seed of the support rollouts and the seeds of the evaluation episodes of the same task.
-EVAL_SEED_OFFSET = 10_000
 #: What a support set holds: "episodes" of the task itself (from its first waypoint on), or "per-arm", one
 #: single-waypoint instruction per arm of the task (:func:`per_arm_tasks`), the budget split between them.
 SUPPORT_MODES = ("episodes", "per-arm")
@@ -93,7 +91,7 @@ class SupportSet:
     :param terminated: ``(n,)`` 1.0 where the episode terminated (no bootstrap), else 0.0.
     :param episode_ends: ``(n,)`` 1.0 where an episode ended (terminated, truncated, or cut by the support budget).
     :param successes: ``(n,)`` the env's ``info["is_success"]`` after each step.
-    :param collisions: ``(n,)`` the env's ``info["collision"]`` after each step.
+    :param collisions: ``(n,)`` the env's ``info["collision"]`` after each step (this step's contact).
     """
 
     observations: np.ndarray
@@ -271,11 +269,13 @@ def evaluate_adaptation(
 
     :param model: an :class:`Adaptable` (also needs ``predict``).
     :param env_id: registered env ID (e.g. ``"VAFN/ThreeArmReachHidden-v1"``); one env is made and reused.
-    :param tasks: held-out instructions (e.g. ``InstructionBenchmark(env_id).test_tasks``).
+    :param tasks: held-out instructions (e.g. ``InstructionBenchmark(env_id).test_tasks``; ``validation_tasks`` while
+        training).
     :param n_support: support transitions per adaptation.
     :param k_values: numbers of adaptation steps to evaluate (each >= 0).
     :param n_eval_episodes: deterministic evaluation episodes per (task, k).
-    :param seed: base seed; task ``i`` uses support seed ``seed + i`` and evaluation seeds after ``EVAL_SEED_OFFSET``.
+    :param seed: base seed; task ``i`` uses support seed ``seed + i`` and evaluation seeds
+        ``vafn_gym.benchmarks.episode_seed(seed, i, episode)``.
     :param env_kwargs: extra keyword arguments of ``gym.make``.
     :param support: one of :data:`SUPPORT_MODES`: what the support set of each task holds.
     :param keep_episodes: also return each row's evaluation episodes (:func:`run_episode` rows: outcome, failing arm,
@@ -288,8 +288,8 @@ def evaluate_adaptation(
     """
     if not tasks:
         raise ValueError("tasks is empty")
-    if n_eval_episodes < 1:
-        raise ValueError(f"n_eval_episodes must be >= 1, got {n_eval_episodes}")
+    if not 1 <= n_eval_episodes <= EPISODES_PER_TASK:
+        raise ValueError(f"n_eval_episodes must be in [1, {EPISODES_PER_TASK}], got {n_eval_episodes}")
     if any(int(k) < 0 for k in k_values):
         raise ValueError(f"k_values must be >= 0, got {list(k_values)}")
     if support not in SUPPORT_MODES:
@@ -315,8 +315,7 @@ def evaluate_adaptation(
                 env.unwrapped.set_task(task)
                 episodes = []
                 for episode in range(n_eval_episodes):
-                    episodes.append(run_episode(
-                        policy, env, seed=seed + EVAL_SEED_OFFSET + task_index * n_eval_episodes + episode))
+                    episodes.append(run_episode(policy, env, seed=episode_seed(seed, task_index, episode)))
                     if at_episode_end is not None:
                         episodes[-1].update(at_episode_end(env))
                 rows.append(
