@@ -59,7 +59,8 @@ class SuccessCollisionEvalCallback(EvalCallback):
             spec = self.eval_env.get_attr("spec")[0]
             if spec is None:
                 raise ValueError("SuccessCollisionEvalCallback needs an evaluation env made from a registered ID")
-            self._env = gym.make(spec)
+            # the env itself, without the wrappers (e.g. Monitor) that the evaluation env's spec lists
+            self._env = gym.make(spec.id, max_episode_steps=spec.max_episode_steps, **spec.kwargs)
             if callable(getattr(self._env.unwrapped, "set_task", None)):
                 self._tasks = suite_tasks(self._env, "validation", self.seed, n=self.n_eval_episodes)
         return self._env
