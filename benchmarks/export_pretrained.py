@@ -23,6 +23,7 @@ import torch  # noqa: E402
 
 from vafn_gym import InstructionBenchmark, episode_rates  # noqa: E402
 from vafn_sb3 import load_weights, save_weights  # noqa: E402
+from vafn_sb3.loading import load_model  # noqa: E402
 from vafn_sb3.pretrained import pretrained_path  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 
@@ -34,7 +35,9 @@ def main() -> None:
     )
     parser.add_argument("--algo", required=True, help="zoo key of the algorithm (required; default: none)")
     parser.add_argument("--env", default="VAFN/ThreeArmReach-v1", help="env ID the model was trained on")
-    parser.add_argument("--model", type=Path, required=True, help="an SB3 zip saved by benchmarks/learning.py --save")
+    parser.add_argument("--model", type=Path, required=True,
+                        help="a model saved by benchmarks/learning.py --save (weights only, or an SB3 zip, which is "
+                        "unpickled: your own files only)")
     parser.add_argument("--summary", type=Path, required=True, help="the learning summary the model came from")
     parser.add_argument("--seed", type=int, default=0, help="which seed of the summary the model is")
     parser.add_argument("--n-test", type=int, default=100, help="held-out instructions of the stored evaluation")
@@ -43,7 +46,8 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     register_algorithms()
-    model = require_algorithm(args.algo).load(args.model, device="cpu")
+    require_algorithm(args.algo)
+    model, _ = load_model(args.model, args.algo, trust_remote_code=True)  # the maintainer's own trained model
     save_weights(model, pretrained_path(args.algo, args.env))
     policy = load_weights(pretrained_path(args.algo, args.env))  # exactly the shipped file
     start = time.perf_counter()

@@ -8,7 +8,9 @@ validation suite of :class:`vafn_gym.InstructionBenchmark`; the curve a run is w
 ``<out>/<algo>_<env>_curves.csv`` (one row per seed and evaluation, its ``split`` named) and
 ``<out>/<algo>_<env>_summary.json`` (final test success / collision / episode length with 95 % CIs over seeds, env
 steps to first cross 0.95, wall and CPU time), and prints them. Training uses one torch thread. ``--save DIR`` keeps
-each seed's final model (SB3 zip) for ``benchmarks/export_pretrained.py``.
+each seed's final model for ``benchmarks/export_pretrained.py`` and ``benchmarks/adaptation.py``: weights only
+(``vafn_sb3.save_weights``, which loads without running code), or an SB3 zip for an algorithm with no weights format
+(``ppo_lstm``).
 """
 
 from __future__ import annotations
@@ -30,12 +32,15 @@ import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from rl_zoo3.utils import get_wrapper_class  # noqa: E402
+from stable_baselines3.common.base_class import BaseAlgorithm  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import vafn_gym  # noqa: E402,F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark, confidence_half_width, episode_rates  # noqa: E402
 from vafn_gym.files import write_csv_rows  # noqa: E402
 from zoo.hyperparams import load_entry, load_hyperparams, load_training_env_kwargs  # noqa: E402
+from vafn_sb3 import save_weights  # noqa: E402
+from vafn_sb3.registry import weights_classes  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 
 SUCCESS_TARGET = 0.95
@@ -51,6 +56,15 @@ def training_env_wrapper(args: argparse.Namespace) -> Callable[[gym.Env], gym.En
     """The training env's wrapper: ``--hyperparams``' ``env_wrapper``, else the YAML's (rl_zoo3's format)."""
     wrapper = args.hyperparams.get("env_wrapper", load_entry(args.algo, args.env).get("env_wrapper"))
     return get_wrapper_class({"env_wrapper": wrapper})
+
+
+def save_model(model: BaseAlgorithm, path: Path) -> None:
+    """``model`` at ``path``: weights only where its algorithm has that format, else an SB3 zip (which unpickles)."""
+    if weights_classes().get(type(model).__name__) is type(model):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        save_weights(model, path)
+    else:
+        model.save(path)
 
 
 def train_one(args: argparse.Namespace, seed: int, benchmark: InstructionBenchmark) -> tuple[list[dict], object]:
@@ -138,7 +152,7 @@ def main() -> None:
         seed_rows, model = train_one(args, seed, benchmark)
         own.extend(seed_rows)
         if args.save is not None:
-            model.save(args.save / f"{name}_seed{seed}")
+            save_model(model, args.save / f"{name}_seed{seed}.zip")
         # Re-read just before writing, so seeds run in parallel processes with --append all land in one file.
         rows = (read_curves(curves, exclude=args.seeds) if args.append and curves.is_file() else []) + own
         write_csv_rows(rows, curves, missing="nan")  # rewritten after every seed

@@ -245,12 +245,15 @@ def pretrained_methods(panel: Panel) -> list[StudyMethod]:
 def evaluate_panel(panel: Panel, budget: Budget, work: Path, out: Path, n_workers: int) -> dict[str, Any]:
     """Run ``benchmarks/adaptation.py`` on one panel with every trained (and packaged) model; returns its status."""
     from vafn_sb3.pretrained import pretrained_path
+    from vafn_sb3.registry import ALGORITHMS
 
-    fields = []
+    fields, own_sb3_zips = [], False
     for method in panel.methods:
         folder = model_dir(work, panel, method)
         if any(folder.glob("*_seed*.zip")):
             fields.append(method.method_fields(str(folder / "*_seed*.zip")))
+            # learning.py saves weights only where the algorithm has that format; else an SB3 zip this run made itself
+            own_sb3_zips |= not ALGORITHMS[method.algo].weights
     if budget.pretrained:
         for method in pretrained_methods(panel):
             fields.append(method.method_fields(str(pretrained_path(method.algo, method.train_env))))
@@ -265,6 +268,8 @@ def evaluate_panel(panel: Panel, budget: Budget, work: Path, out: Path, n_worker
                "--out", str(out / "adaptation" / panel.name), "--title", what]
     for method in fields:
         command += ["--method", *method]
+    if own_sb3_zips:
+        command.append("--trust-remote-code")
     result = run_script(command, capture_output=True, text=True)
     return {"ok": result.returncode == 0, "message": (result.stdout + result.stderr)[-2000:]}
 
