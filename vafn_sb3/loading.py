@@ -14,6 +14,7 @@ directory's sizes are checked before anything is inflated, and a model with non-
 
 from __future__ import annotations
 
+import argparse
 import base64
 import binascii
 import json
@@ -22,6 +23,8 @@ import re
 import zipfile
 from pathlib import Path
 from typing import Any
+
+from stable_baselines3.common.base_class import BaseAlgorithm
 
 from vafn_sb3.common.save import MAX_JSON_ENTRY_BYTES, check_file_size, check_zip_directory
 from vafn_sb3.common.serialization import check_finite, load_weights
@@ -80,7 +83,8 @@ def untrusted_sb3_zip_error(path: str | Path) -> ValueError:
                       "source, or convert it once with vafn_sb3.save_weights")
 
 
-def load_model(path: str | Path, algo: str | None = None, *, trust_remote_code: bool = False) -> tuple[Any, str]:
+def load_model(path: str | Path, algo: str | None = None, *,
+               trust_remote_code: bool = False) -> tuple[BaseAlgorithm, str]:
     """``(model, algorithm key)`` of the policy saved at ``path`` (``ValueError`` naming why it cannot load).
 
     :param path: a weights-only file (``vafn_sb3.save_weights``) or, trusted only, an SB3 ``.zip`` (``model.save``).
@@ -104,7 +108,7 @@ def load_model(path: str | Path, algo: str | None = None, *, trust_remote_code: 
     return _load_trusted_sb3(path, algo)
 
 
-def _load_trusted_sb3(path: Path, algo: str | None) -> tuple[Any, str]:
+def _load_trusted_sb3(path: Path, algo: str | None) -> tuple[BaseAlgorithm, str]:
     """``(model, key)`` of an SB3 zip through SB3's unpickling ``load`` (trusted files only), weights checked finite."""
     data = _sb3_data(path)
     signed = [key for key, entry in ALGORITHMS.items() if entry.saved_keys and entry.saved_keys <= set(data)]
@@ -136,7 +140,7 @@ def _load_trusted_sb3(path: Path, algo: str | None) -> tuple[Any, str]:
 
 
 def load_model_or_exit(path: str | Path, algo: str | None = None, context: str = "", *,
-                       trust_remote_code: bool = False) -> tuple[Any, str]:
+                       trust_remote_code: bool = False) -> tuple[BaseAlgorithm, str]:
     """:func:`load_model` for command-line tools: a file that does not load stops the program in one line.
 
     :param context: put before the reason (e.g. ``"--method mtsac: "``).
@@ -153,7 +157,7 @@ TRUST_HELP = ("load SB3 .zip models, whose pickled data runs code when loaded: o
               "it only weights-only files (vafn_sb3.save_weights, the packaged policies) load")
 
 
-def add_trust_flag(parser: Any) -> None:
+def add_trust_flag(parser: argparse.ArgumentParser) -> None:
     """Add ``--trust-remote-code`` (``args.trust_remote_code``) to an ``argparse`` parser that loads models."""
     parser.add_argument("--trust-remote-code", action="store_true", help=TRUST_HELP)
 

@@ -119,7 +119,7 @@ def _hyperparameter_names(cls: type[BaseAlgorithm]) -> set[str]:
     for klass in cls.__mro__:
         if "__init__" not in vars(klass):
             continue
-        parameters = inspect.signature(klass.__init__).parameters
+        parameters = inspect.signature(vars(klass)["__init__"]).parameters
         names.update(parameters)
         if not any(parameter.kind is inspect.Parameter.VAR_KEYWORD for parameter in parameters.values()):
             break
@@ -383,10 +383,11 @@ def load_weights(path: str | os.PathLike[str], env: Any = None, device: th.devic
     action_space = _decode_space(config.get("action_space"))
     policy_kwargs = _decode_policy_kwargs(config.get("policy_kwargs", {}))
 
-    model = cls(policy=policy, env=env, device=device, policy_kwargs=policy_kwargs, _init_setup_model=False)
+    # every algorithm of the registry takes _init_setup_model (SB3's off- and on-policy bases)
+    model = cls(policy=policy, env=env, device=device, policy_kwargs=policy_kwargs, _init_setup_model=False)  # type: ignore[call-arg]
     if env is None:
         model.observation_space, model.action_space, model.n_envs = observation_space, action_space, 1
-    else:
+    elif model.env is not None:  # set from env by the constructor
         check_for_correct_spaces(model.env, observation_space, action_space)
     # SB3 tuples (train_freq) arrive as JSON lists; SB3 accepts tuples wherever it takes a top-level sequence.
     model.__dict__.update({key: tuple(value) if isinstance(value, list) else value

@@ -21,7 +21,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import gymnasium as gym
 import numpy as np
@@ -42,16 +42,22 @@ from vafn_gym.constants import (
     V_MAX,
 )
 from vafn_gym.controllers import PROBE_DIRECTIONS, trilaterate
+from vafn_gym.instructions import Instruction
 from vafn_gym.layout import ArmLayout
+from vafn_sb3.common.adaptation import AdaptedPolicy
 from vafn_sb3.inference.estimators.base import (
     ESTIMATOR_READINGS,
     REFINE_SOLVER,
     REFINE_SOLVERS,
     REFINE_STEPS,
+    Estimator,
     FirstReadingsEstimator,
 )
 from vafn_sb3.inference.estimators.gradient import GradientTargetEstimator
 from vafn_sb3.inference.estimators.learned import LearnedTargetEstimator
+
+if TYPE_CHECKING:
+    from vafn_gym.envs import MultiArmEnv
 
 __all__ = ["ESTIMATOR_MODES", "INFERENCE_MODES", "GradientInferencePolicy", "TargetInferencePolicy",
            "collect_waypoint_readings", "inference_policy_for_env", "load_estimator"]
@@ -81,12 +87,12 @@ class TargetInferencePolicy:
 
     def __init__(
         self,
-        model: Any,
+        model: AdaptedPolicy,
         homes: Mapping[int, np.ndarray],
         priors: Mapping[int, np.ndarray],
         inference: str = "probe",
         waiting_goal: str = "target",
-        estimator: Any = None,
+        estimator: Estimator | None = None,
     ) -> None:
         self.model = model
         self.arm_ids = tuple(sorted(int(arm) for arm in homes))
@@ -117,7 +123,7 @@ class TargetInferencePolicy:
     @staticmethod
     def env_frame(env: gym.Env) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], str]:
         """``homes``, ``priors`` and ``waiting_goal`` of ``env`` (a hidden-target env, any wrapper, ``history=1``)."""
-        base = env.unwrapped
+        base = cast("MultiArmEnv", env.unwrapped)
         if base.observe_goal or base.history != 1:
             raise ValueError(
                 f"target inference needs hidden-target observations with history=1, the env has "
@@ -130,7 +136,7 @@ class TargetInferencePolicy:
 
     @classmethod
     def for_env(
-        cls, model: Any, env: gym.Env, inference: str = "probe", estimator: Any = None
+        cls, model: AdaptedPolicy, env: gym.Env, inference: str = "probe", estimator: Estimator | None = None
     ) -> TargetInferencePolicy:
         """A policy for ``env`` (a hidden-target :class:`MultiArmEnv`, any wrapper, ``history=1``)."""
         homes, priors, waiting_goal = cls.env_frame(env)
@@ -168,7 +174,8 @@ class TargetInferencePolicy:
         if self.inference == "none":
             estimate = None
         elif self.inference in ESTIMATOR_MODES:  # one estimate (GradientInferencePolicy refines it)
-            estimate = self.estimator(self._points, self._distances) if self._estimate is None else None
+            estimator = cast("Estimator", self.estimator)  # set by __init__ for these modes
+            estimate = estimator(self._points, self._distances) if self._estimate is None else None
         else:
             estimate = trilaterate(self._points, self._distances)
         if estimate is not None:
@@ -211,7 +218,8 @@ class TargetInferencePolicy:
         return action
 
     def predict(
-        self, observation: np.ndarray, state: Any = None, episode_start: Any = None, deterministic: bool = True
+        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
     ) -> tuple[np.ndarray, None]:
         """SB3-style ``predict`` for one observation: ``(action, None)``."""
         obs = np.asarray(observation)
@@ -240,8 +248,10 @@ class GradientInferencePolicy(TargetInferencePolicy):
     #: No support set: the adapted policies adapt on the episode's own readings.
     support = None
 
-    def __init__(self, model: Any, homes: Mapping[int, np.ndarray], priors: Mapping[int, np.ndarray],
-                 inference: str = "gradient", waiting_goal: str = "target", estimator: Any = None,
+    estimator: GradientTargetEstimator
+
+    def __init__(self, model: AdaptedPolicy, homes: Mapping[int, np.ndarray], priors: Mapping[int, np.ndarray],
+                 inference: str = "gradient", waiting_goal: str = "target", estimator: Estimator | None = None,
                  steps: int = 0, refine_steps: int | None = None, refine_solver: str = REFINE_SOLVER) -> None:
         if inference != "gradient":
             raise ValueError(f"GradientInferencePolicy infers by gradient steps, not inference={inference!r}")
@@ -260,7 +270,8 @@ class GradientInferencePolicy(TargetInferencePolicy):
 
     @classmethod
     def for_env(
-        cls, model: Any, env: gym.Env, inference: str = "gradient", estimator: Any = None, steps: int = 0,
+        cls, model: AdaptedPolicy, env: gym.Env, inference: str = "gradient", estimator: Estimator | None = None,
+        steps: int = 0,
         refine_steps: int | None = None, refine_solver: str = REFINE_SOLVER,
     ) -> GradientInferencePolicy:
         """A policy for ``env`` (a hidden-target :class:`MultiArmEnv`, any wrapper, ``history=1``)."""
@@ -281,11 +292,11 @@ class GradientInferencePolicy(TargetInferencePolicy):
         # a new reading of a waypoint already estimated (not a repeated point, not a new waypoint) refines it
         if self.refines and estimated and self._estimate is not None and len(self._points) > n_points:
             # Gauss-Newton also restarts from the prior (the shared region's centre): a wild first estimate is dropped
-            restarts = (self.priors[self._active],) if self.refine_solver == "gauss-newton" else ()
+            restarts = (self.priors[active],) if self.refine_solver == "gauss-newton" else ()
             self._estimate = self.estimator.refine(self._points, self._distances, self._estimate, self.refine_steps,
                                                    self.refine_solver, restarts=restarts)
 
-    def adapt(self, env: gym.Env, task: Any = None, n_support: int = 0, k: int = 1,
+    def adapt(self, env: gym.Env, task: Instruction | None = None, n_support: int = 0, k: int = 1,
               seed: int | None = None) -> GradientInferencePolicy:
         """A copy whose estimator takes ``k`` gradient steps per waypoint (nothing collected; this policy unchanged)."""
         adapted = copy.copy(self)
@@ -304,7 +315,8 @@ def load_estimator(inference: str, path: str | Path | None = None) -> FirstReadi
 
 
 def inference_policy_for_env(
-    model: Any, env: gym.Env, inference: str, estimator: Any = None, steps: int | None = None,
+    model: AdaptedPolicy, env: gym.Env, inference: str, estimator: Estimator | None = None,
+    steps: int | None = None,
     refine_steps: int | None = None, refine_solver: str = REFINE_SOLVER,
 ) -> TargetInferencePolicy:
     """The policy of an ``inference`` setting for ``env``: a :class:`GradientInferencePolicy` for ``"gradient"``.
@@ -314,10 +326,9 @@ def inference_policy_for_env(
     """
     if inference != "gradient":
         return TargetInferencePolicy.for_env(model, env, inference=inference, estimator=estimator)
-    if estimator is None:
-        estimator = load_estimator("gradient")
-    return GradientInferencePolicy.for_env(model, env, estimator=estimator,
-                                           steps=estimator.steps if steps is None else steps, refine_steps=refine_steps,
+    gradient = cast(GradientTargetEstimator, load_estimator("gradient") if estimator is None else estimator)
+    return GradientInferencePolicy.for_env(model, env, estimator=gradient,
+                                           steps=gradient.steps if steps is None else steps, refine_steps=refine_steps,
                                            refine_solver=refine_solver)
 
 
@@ -332,7 +343,7 @@ class _TrilaterationAfter:
 
 
 def collect_waypoint_readings(
-    model: Any, env: gym.Env, tasks: Sequence[Any], seed: int, n_readings: int = ESTIMATOR_READINGS,
+    model: AdaptedPolicy, env: gym.Env, tasks: Sequence[Instruction], seed: int, n_readings: int = ESTIMATOR_READINGS,
     progress: bool = True, heading_after: int | None = None,
 ) -> dict[str, np.ndarray]:
     """Each waypoint's first ``n_readings`` readings of ``model`` on hidden targets, with its true target (the label).
@@ -353,7 +364,7 @@ def collect_waypoint_readings(
                          f"{heading_after}")
     policy = TargetInferencePolicy.for_env(model, env, inference="learned",
                                            estimator=_TrilaterationAfter(heading_after))
-    base = env.unwrapped
+    base = cast("MultiArmEnv", env.unwrapped)
     points, distances, targets, arms = [], [], [], []
     for index, task in enumerate(tqdm(tasks, desc="collecting readings", disable=not progress)):
         base.set_task(task)
@@ -369,7 +380,8 @@ def collect_waypoint_readings(
                 labelled = True
                 points.append(np.array(waypoint_points))
                 distances.append(np.array(waypoint_distances))
-                targets.append(base.observed_point(active, base.task.current_target(active)))
+                arm = cast(int, active)  # an arm with readings is the active one
+                targets.append(base.observed_point(arm, base.task.current_target(arm)))
                 arms.append(active)
             obs, _, terminated, truncated, _ = env.step(action)
             done = terminated or truncated

@@ -14,8 +14,11 @@ from tqdm.auto import tqdm
 
 from vafn_sb3.common.adaptation import seeded_torch_stream
 
-__all__ = ["ESTIMATOR_READINGS", "REFINE_SOLVER", "REFINE_SOLVERS", "REFINE_STEPS", "FirstReadingsEstimator",
-           "fit_minibatches", "seeded_mlp"]
+__all__ = ["ESTIMATOR_READINGS", "REFINE_SOLVER", "REFINE_SOLVERS", "REFINE_STEPS", "Estimator",
+           "FirstReadingsEstimator", "fit_minibatches", "seeded_mlp"]
+
+#: What an inference policy calls on a waypoint's readings so far, ``(points, distances)``: a target, or None (not yet).
+Estimator = Callable[[Sequence[np.ndarray], Sequence[float]], "np.ndarray | None"]
 
 #: Readings a ``LearnedTargetEstimator`` reads by default: the first and one after each probe move, which do not
 #: depend on the policy it serves (later ones do: an estimator trained on them is tied to one policy).
@@ -41,7 +44,7 @@ def seeded_mlp(n_in: int, hidden: Sequence[int], n_out: int, activation: type[nn
 
 
 def fit_minibatches(
-    parameters: list[torch.Tensor], batch_loss: Callable[[torch.Tensor], torch.Tensor], n: int, epochs: int,
+    parameters: Sequence[torch.Tensor], batch_loss: Callable[[torch.Tensor], torch.Tensor], n: int, epochs: int,
     batch_size: int, lr: float, seed: int, description: str, progress: bool,
 ) -> list[float]:
     """Adam, cosine schedule, ``batch_loss(indices)`` over seeded shuffles of ``n`` rows; the mean loss per epoch."""

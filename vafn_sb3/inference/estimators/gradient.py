@@ -85,7 +85,7 @@ class GradientTargetEstimator(FirstReadingsEstimator):
         self.stats = {"x_mean": np.zeros(n_offsets), "x_std": np.ones(n_offsets), "r_mean": np.zeros(self.n_readings),
                       "r_std": np.ones(self.n_readings), "z_mean": np.zeros(3), "z_std": np.ones(3)}
         #: The per-reading model :meth:`refine` steps on (None until :meth:`fit_refinement`: no refinement).
-        self.reading_net: nn.Module | None = None
+        self.reading_net: nn.Sequential | None = None
 
     def _inputs(self, points: np.ndarray, distances: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """Standardised move offsets ``(N, 3 (R - 1))`` and readings ``(N, R)`` of a batch (first ``R`` readings)."""
@@ -178,11 +178,11 @@ class GradientTargetEstimator(FirstReadingsEstimator):
                 error = ((final - true_z) ** 2).sum(1).mean().item()
                 errors[step] = error if math.isfinite(error) else math.inf
             with torch.no_grad():
-                self.log_step.fill_(math.log(min(errors, key=errors.get)))
+                self.log_step.fill_(math.log(min(errors, key=errors.__getitem__)))
         return losses
 
     @staticmethod
-    def _reading_net(hidden: Sequence[int], seed: int) -> nn.Module:
+    def _reading_net(hidden: Sequence[int], seed: int) -> nn.Sequential:
         """The refinement model: ``(offset, context)`` (6 numbers) to one distance, smooth in the context."""
         return seeded_mlp(6, hidden, 1, nn.SiLU, seed)
 
@@ -224,14 +224,14 @@ class GradientTargetEstimator(FirstReadingsEstimator):
             raise ValueError("this estimator has no refinement model: call fit_refinement first")
         if solver not in REFINE_SOLVERS:
             raise ValueError(f"solver must be one of {REFINE_SOLVERS}, got {solver!r}")
-        points = np.asarray(points, dtype=np.float64)
-        offsets = torch.as_tensor((points - points[0]) / REFINE_SCALE, dtype=torch.float32)
+        array = np.asarray(points, dtype=np.float64)
+        offsets = torch.as_tensor((array - array[0]) / REFINE_SCALE, dtype=torch.float32)
         readings = torch.as_tensor(np.asarray(distances, dtype=np.float64) / REFINE_SCALE, dtype=torch.float32)
-        ends = [self._refined(offsets, readings, torch.as_tensor((np.asarray(start) - points[0]) / REFINE_SCALE,
+        ends = [self._refined(offsets, readings, torch.as_tensor((np.asarray(start) - array[0]) / REFINE_SCALE,
                                                                  dtype=torch.float32), steps, solver)
                 for start in (estimate, *restarts)]
         z = ends[0] if len(ends) == 1 else min(ends, key=lambda end: self._reading_error(offsets, readings, end))
-        return points[0] + z.double().numpy() * REFINE_SCALE
+        return array[0] + z.double().numpy() * REFINE_SCALE
 
     def _refined(self, offsets: torch.Tensor, readings: torch.Tensor, z: torch.Tensor, steps: int,
                  solver: str) -> torch.Tensor:
@@ -258,6 +258,7 @@ class GradientTargetEstimator(FirstReadingsEstimator):
 
     def _distances(self, offsets: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """The refinement model's distance at each offset ``(N, 3)`` with the context ``z``: ``(3,)`` or one per row."""
+        assert self.reading_net is not None, "refine checks that a refinement model exists"
         return self.reading_net(torch.cat([offsets, z.expand(len(offsets), 3)], dim=1))[:, 0]
 
     def _reading_error(self, offsets: torch.Tensor, readings: torch.Tensor, z: torch.Tensor) -> float:
