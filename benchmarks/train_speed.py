@@ -8,11 +8,18 @@ same seed and a warm-up past ``learning_starts``; then short blocks of ``learn()
 (``train(1, batch_size)``, as ``learn`` calls it) and of env steps with random actions (the env-bound limit). Writes
 ``<out>/train_speed.csv`` (one row per block) and ``<out>/train_speed.md`` (medians with min-max over blocks, the
 paired lean/stock ratios, the command, the git commit).
+
+    python benchmarks/train_speed.py --learning results/train_speed/learning
+
+only tabulates a learning comparison instead: held-out success per evaluation step, mean and 95 % CI over seeds, of
+``benchmarks/learning.py`` runs tagged ``_stock`` (``--hyperparams '{"lean_update": false}'``) and ``_lean`` in that
+folder, written to ``<folder>/learning.md``.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import os
 import platform
 import subprocess
@@ -34,6 +41,7 @@ import torch  # noqa: E402
 
 import vafn_gym  # noqa: E402,F401  (registers the env IDs)
 import vafn_sb3  # noqa: E402  (registers SharedAgentPolicy as a stock SB3 alias)
+from vafn_gym import confidence_half_width  # noqa: E402
 from vafn_gym.files import write_csv_rows  # noqa: E402
 from zoo.hyperparams import load_hyperparams  # noqa: E402
 
@@ -111,7 +119,8 @@ def measure(args: argparse.Namespace, net_arch: list[int]) -> list[dict]:
             steps, wall, cpu = timed(run)
             rows.append({"net_arch": "-".join(map(str, net_arch)), "variant": variant, "kind": kind,
                          "repeat": repeat, "steps": steps, "wall_s": round(wall, 4), "cpu_s": round(cpu, 4),
-                         "steps_per_s": round(steps / wall, 2), "cpu_steps_per_s": round(steps / cpu, 2)})
+                         "steps_per_s": round(steps / wall, 2), "cpu_steps_per_s": round(steps / cpu, 2),
+                         "load_1min": round(os.getloadavg()[0], 2)})
         print(rows[-5:], flush=True)
     env.close()
     return rows
@@ -133,46 +142,73 @@ def pick(rows: list[dict], arch: str, variant: str, kind: str, key: str) -> list
     return [r[key] for r in sorted(chosen, key=lambda r: r["repeat"])]
 
 
-def markdown(rows: list[dict], args: argparse.Namespace, command: str, load: tuple[list[float], list[float]]) -> str:
+def markdown(rows: list[dict], args: argparse.Namespace, command: str) -> str:
     """The report: per architecture and variant, env steps/s, gradient steps/s, share of the env-bound limit."""
     lines = [
         "# Training speed: stock SB3 SAC vs vafn_sb3.SAC's lean update",
         "",
         f"Command: `{command}`  ",
         f"Commit: {git_commit()}; torch {torch.__version__}, stable-baselines3 {stable_baselines3.__version__}, "
-        f"Python {platform.python_version()}, one torch thread, {os.cpu_count()} logical CPUs (shared; 1-minute load "
-        f"average {load[0][0]:.1f} at the start, {load[1][0]:.1f} at the end).  ",
+        f"Python {platform.python_version()}, one torch thread, {os.cpu_count()} logical CPUs shared with other "
+        "jobs.  ",
         f"Env {args.env}, hyperparams/sac.yml (batch 256, train_freq 1, gradient_steps 1, shared per-arm actor), "
         f"seed {args.seed}; {args.repeats} interleaved blocks of {args.block} steps per measurement, after "
         f"learning_starts + {args.warmup} warm-up steps. Values: median [min-max] over the blocks; speed-ups: "
         "median [min-max] of the lean/stock ratio of blocks run back to back.",
         "",
-        "| net_arch | update | env steps/s (`learn`) | same, per CPU second | share of env-bound limit | "
-        "gradient steps/s (`train`) | speed-up per env step | speed-up per gradient step |",
-        "|---|---|---|---|---|---|---|---|",
+        "| net_arch | update | env steps/s (`learn`), wall | per CPU second | share of env-bound limit (CPU) | "
+        "gradient steps/s (`train`), wall | per CPU second | speed-up per env step, wall / CPU | "
+        "speed-up per gradient step, wall / CPU |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for arch in dict.fromkeys(r["net_arch"] for r in rows):
-        limit = float(np.median(pick(rows, arch, "env", "env", "steps_per_s")))
+        label = f"[{arch.replace('-', ', ')}]"
+        limit = float(np.median(pick(rows, arch, "env", "env", "cpu_steps_per_s")))
         for variant in VARIANTS:
-            learn = pick(rows, arch, variant, "learn", "steps_per_s")
-            learn_cpu = pick(rows, arch, variant, "learn", "cpu_steps_per_s")
-            train = pick(rows, arch, variant, "train", "steps_per_s")
-            if variant == "stock":
-                speedups = ("1", "1")
-            else:
-                stock_learn = pick(rows, arch, "stock", "learn", "steps_per_s")
-                stock_train = pick(rows, arch, "stock", "train", "steps_per_s")
-                speedups = (ratio_spread([a / b for a, b in zip(learn, stock_learn)]),
-                            ratio_spread([a / b for a, b in zip(train, stock_train)]))
-            share = f"{100 * np.median(learn) / limit:.1f} %"
-            lines.append(f"| [{arch.replace('-', ', ')}] | {variant} | {spread(learn)} | {spread(learn_cpu)} | {share} "
-                         f"| {spread(train)} | {speedups[0]} | {speedups[1]} |")
-        lines.append(f"| [{arch.replace('-', ', ')}] | env only (random actions) | "
-                     f"{spread(pick(rows, arch, 'env', 'env', 'steps_per_s'))} | "
-                     f"{spread(pick(rows, arch, 'env', 'env', 'cpu_steps_per_s'))} | 100 % | | | |")
+            columns = {(kind, key): pick(rows, arch, variant, kind, key)
+                       for kind in ("learn", "train") for key in ("steps_per_s", "cpu_steps_per_s")}
+            speedups = []
+            for kind in ("learn", "train"):
+                stock = {key: pick(rows, arch, "stock", kind, key) for key in ("steps_per_s", "cpu_steps_per_s")}
+                ratios = [ratio_spread([a / b for a, b in zip(columns[kind, key], stock[key])]) for key in stock]
+                speedups.append("1" if variant == "stock" else " / ".join(ratios))
+            share = f"{100 * np.median(columns['learn', 'cpu_steps_per_s']) / limit:.1f} %"
+            lines.append(f"| {label} | {variant} | {spread(columns['learn', 'steps_per_s'])} | "
+                         f"{spread(columns['learn', 'cpu_steps_per_s'])} | {share} | "
+                         f"{spread(columns['train', 'steps_per_s'])} | {spread(columns['train', 'cpu_steps_per_s'])} | "
+                         f"{speedups[0]} | {speedups[1]} |")
+        lines.append(f"| {label} | env only (random actions) | {spread(pick(rows, arch, 'env', 'env', 'steps_per_s'))} "
+                     f"| {spread(pick(rows, arch, 'env', 'env', 'cpu_steps_per_s'))} | 100 % | | | | |")
+    loads = [r["load_1min"] for r in rows]
+    lines += ["", f"1-minute load average during the blocks: {spread(loads)} on {os.cpu_count()} logical CPUs. Per CPU "
+              "second: steps per second of this process's CPU time (`time.process_time`), which leaves out the time "
+              "other processes held the core; wall: per second of elapsed time."]
     lines += ["", "stock: `stable_baselines3.SAC`; lean: `vafn_sb3.SAC` (`lean_update=True`, the default; "
               "vafn_sb3/sac/lean.py). One row per block: train_speed.csv.", ""]
     return "\n".join(lines)
+
+
+def learning_table(folder: Path, env_id: str) -> str:
+    """Held-out success per evaluation step of the ``_stock`` and ``_lean`` learning runs in ``folder``, mean ± 95 % CI
+    over seeds, per-seed values, and whether the two intervals overlap."""
+    curves = {variant: list(csv.DictReader((folder / f"sac_{env_id.split('/')[-1]}_{variant}_curves.csv").open()))
+              for variant in VARIANTS}
+    steps = sorted({int(r["timesteps"]) for rows in curves.values() for r in rows})
+    lines = ["| env steps | " + " | ".join(f"{v}: success (mean ± 95 % CI) | {v}: per seed" for v in VARIANTS)
+             + " | intervals overlap |", "|---" * (2 * len(VARIANTS) + 2) + "|"]
+    for step in steps:
+        cells, intervals = [], []
+        for variant in VARIANTS:
+            chosen = sorted((r for r in curves[variant] if int(r["timesteps"]) == step), key=lambda r: int(r["seed"]))
+            values = np.array([float(r["success"]) for r in chosen])
+            half = float(confidence_half_width(values[:, None])[0]) if len(values) else float("nan")
+            intervals.append((values.mean() - half, values.mean() + half) if len(values) else (np.nan, np.nan))
+            cells += [f"{values.mean():.2f} ± {half:.2f} (n={len(values)})" if len(values) else "-",
+                      ", ".join(f"s{r['seed']} {float(r['success']):.2f} ({r['n_tasks']} tasks)" for r in chosen)]
+        (low_a, high_a), (low_b, high_b) = intervals
+        overlap = "yes" if max(low_a, low_b) <= min(high_a, high_b) else "no"
+        lines.append(f"| {step} | " + " | ".join(cells) + f" | {overlap} |")
+    return "\n".join(lines) + "\n"
 
 
 def main() -> None:
@@ -186,14 +222,20 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=200, help="steps after learning_starts before timing")
     parser.add_argument("--seed", type=int, default=0, help="seed of both models and of the env")
     parser.add_argument("--out", type=Path, default=Path("results/train_speed"), help="output folder")
+    parser.add_argument("--learning", type=Path, default=None,
+                        help="only tabulate the _stock/_lean learning runs in this folder (see the module docstring)")
     args = parser.parse_args()
+    if args.learning is not None:
+        table = learning_table(args.learning, args.env)
+        (args.learning / "learning.md").write_text(table)
+        print(table)
+        return
     torch.set_num_threads(1)
     command = " ".join(["python", "benchmarks/train_speed.py", *sys.argv[1:]])
-    load_start = list(os.getloadavg())
     rows = [row for arch in args.net_archs for row in measure(args, [int(w) for w in arch.split(",")])]
     args.out.mkdir(parents=True, exist_ok=True)
     write_csv_rows(rows, args.out / "train_speed.csv")
-    report = markdown(rows, args, command, (load_start, list(os.getloadavg())))
+    report = markdown(rows, args, command)
     (args.out / "train_speed.md").write_text(report)
     print(report)
 

@@ -122,3 +122,16 @@ def test_lean_update_round_trips_through_save_and_load(tmp_path):
     assert loaded.lean_update is False
     loaded.learn(20)
     assert all(group["fused"] is None for group in loaded.actor.optimizer.param_groups)  # stock Adam afterwards
+
+
+@pytest.mark.parametrize("lean_update", [False, True])
+def test_the_zoo_sets_lean_update_from_the_hyperparameters(lean_update, tmp_path):
+    from zoo.train import main as train_main  # the RL-Zoo front end (rl_zoo3.train with the vafn algorithms)
+
+    train_main([
+        "--algo", "sac", "--env", "VAFN/ThreeArmReach-v1", "-n", "260", "-f", str(tmp_path), "--seed", "0",
+        "--eval-freq", "-1", "-params", "learning_starts:200", "batch_size:32", f"lean_update:{lean_update}",
+        "--env-kwargs", "max_length:1",
+    ])
+    model = SAC.load(tmp_path / "sac" / "VAFN-ThreeArmReach-v1_1" / "VAFN-ThreeArmReach-v1.zip")
+    assert model.lean_update is lean_update and model._n_updates > 0
