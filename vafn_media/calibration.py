@@ -211,6 +211,10 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", type=Path, default=None)
     parser.add_argument("--cache-dir", type=Path, default=None)
+    parser.add_argument("--people-speech", type=Path, default=None,
+                        help="the real people's recorded words the checkpoint trained with (calibrates on their "
+                             "selection speakers too, as training did)")
+    parser.add_argument("--people-handwriting", type=Path, default=None, help="and their MNIST training files")
     args = parser.parse_args(argv)
     import torch
 
@@ -222,7 +226,16 @@ def main(argv=None) -> dict:
     generator = InstructionGenerator.load(path, warm=False)
     meta_path = Path(path).with_suffix(".json")
     metadata = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
-    result = calibrate_generator(generator, training_validation_split(metadata, args.cache_dir or DEFAULT_CACHE))
+    people = None
+    if args.people_speech is not None:
+        from vafn_media.people import people_training_data
+
+        train_args = metadata.get("args", {})
+        people = people_training_data(args.people_speech, args.people_handwriting, "selection",
+                                      train_args.get("people_val_items", 300), train_args.get("seed", 0),
+                                      args.cache_dir or DEFAULT_CACHE)
+    result = calibrate_generator(generator, training_validation_split(metadata, args.cache_dir or DEFAULT_CACHE),
+                                 people)
     metadata.update(result)
     meta_path.write_text(json.dumps(metadata, indent=2))
     print(json.dumps(result))
