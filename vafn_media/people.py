@@ -36,8 +36,10 @@ GLYPH_SPLITS: dict[str, tuple[int, int]] = {"train": (0, 50_000), "selection": (
 #: Pause between two words of a spoken instruction, and silence before the first and after the last (seconds).
 PAUSE_RANGE: tuple[float, float] = (0.1, 0.9)
 EDGE_SILENCE_RANGE: tuple[float, float] = (0.05, 0.5)
-#: A word's sound is where its 10 ms frames are within this many dB of its loudest frame (plus a margin each side).
+#: A word's sound is the loudest run of its 10 ms frames within this many dB of its loudest frame, runs closer than
+#: WORD_JOIN_S counting as one, plus a margin each side.
 WORD_DYNAMIC_DB: float = 30.0
+WORD_JOIN_S: float = 0.12
 WORD_MARGIN_S: float = 0.05
 #: Paper and ink grey levels, glyph height range (pixels) and the gap between digits (fraction of the glyph height).
 PAPER_RANGE: tuple[int, int] = (170, 255)
@@ -114,8 +116,9 @@ def load_word(path: Path) -> np.ndarray:
 
 
 def word_span(waveform: np.ndarray, rate: int) -> slice:
-    """Where a recorded word sounds: its 10 ms frames within :data:`WORD_DYNAMIC_DB` of the loudest one, widened by
-    :data:`WORD_MARGIN_S` each side (the whole clip when it is silent).
+    """Where a recorded word sounds: the loudest run of 10 ms frames within :data:`WORD_DYNAMIC_DB` of the loudest
+    frame (runs closer than :data:`WORD_JOIN_S` are one run; a click or breath apart from the word is left out),
+    widened by :data:`WORD_MARGIN_S` each side (the whole clip when it is silent).
 
     :param waveform: float32 samples.
     :param rate: their rate in Hz.
@@ -128,8 +131,11 @@ def word_span(waveform: np.ndarray, rate: int) -> slice:
     if energy.max() <= 0:
         return slice(0, len(waveform))
     loud = np.flatnonzero(energy >= energy.max() * 10 ** (-WORD_DYNAMIC_DB / 10))
+    breaks = np.flatnonzero(np.diff(loud) > int(WORD_JOIN_S * 100)) + 1
+    runs = np.split(loud, breaks)
+    run = max(runs, key=lambda r: energy[r[0]: r[-1] + 1].sum())
     margin = int(WORD_MARGIN_S * rate)
-    return slice(max(0, loud[0] * hop - margin), min(len(waveform), (loud[-1] + 1) * hop + margin))
+    return slice(max(0, run[0] * hop - margin), min(len(waveform), (run[-1] + 1) * hop + margin))
 
 
 def say_instruction(words: SpokenWords, arms: Sequence[int], rng: np.random.Generator,
