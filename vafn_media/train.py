@@ -145,6 +145,23 @@ def trainable_parameters(model, train_only: str) -> list:
     return trainable
 
 
+#: Options whose values are paths on the training machine: the metadata keeps only their last part.
+PATH_OPTIONS: tuple[str, ...] = ("--init", "--out", "--logdir", "--cache-dir", "--people-speech",
+                                 "--people-handwriting")
+
+
+def without_machine_paths(argv: list[str]) -> list[str]:
+    """The command-line words with each path option's value cut to its last part (``/data/sc`` -> ``<sc>``)."""
+    words = list(argv)
+    for i, word in enumerate(words):
+        option, _, value = word.partition("=")
+        if option in PATH_OPTIONS and value:
+            words[i] = f"{option}=<{Path(value).name}>"
+        elif i and words[i - 1] in PATH_OPTIONS:
+            words[i] = f"<{Path(word).name}>"
+    return words
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     """Command-line options of the training command."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -346,8 +363,8 @@ def main(argv=None) -> dict:
     atomic_write(args.out / f"{CHECKPOINT_NAME}.pt", lambda tmp: torch.save(state, tmp))
     metadata = {
         "config": config.to_dict(),
-        "command": "python -m vafn_media.train "
-        + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
+        "command": "python -m vafn_media.train " + " ".join(
+            without_machine_paths(argv if argv is not None else __import__("sys").argv[1:])),
         "args": {
             k: str(v) if isinstance(v, Path) else v
             for k, v in vars(args).items()
