@@ -7,14 +7,13 @@ Each cell reports exact-sequence accuracy and the robot's two rates: *acted on c
 
     OMP_NUM_THREADS=1 python benchmarks/real_people.py --speech <corpus> --handwriting <mnist folder>
 
-writes ``results/real_people/real_people.md`` and ``.csv`` (with the command and commit). ``--pocketsphinx`` adds
+writes ``results/real_people/real_people.md`` (with the command and commit). ``--pocketsphinx`` adds
 pocketsphinx 5's en-us model with a JSGF grammar of the command words as a reference reader (audio only).
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import subprocess
 import time
 from collections.abc import Callable
@@ -166,12 +165,8 @@ def pocketsphinx_reader() -> Callable[..., object]:
 
 
 def write(rows: list[dict], out: Path, header: str) -> None:
-    """The table as markdown (every speaker) and CSV."""
+    """The table as markdown, every reader, cell and speaker."""
     out.mkdir(parents=True, exist_ok=True)
-    with open(out / "real_people.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
     lines = [header, "", "| reader | cell | speaker | n | exact % | acted on correctly % | acted on wrongly % |",
              "|---|---|---|---|---|---|---|"]
     lines += [f"| {r['reader']} | {r['cell']} | {r['speaker']} | {r['n']} | {r['exact']:.1f} | {r['acted_right']:.1f} "
