@@ -23,7 +23,7 @@ import torch  # noqa: E402
 
 from vafn_gym import InstructionBenchmark, episode_rates  # noqa: E402
 from vafn_sb3 import load_weights, save_weights  # noqa: E402
-from vafn_sb3.loading import load_model  # noqa: E402
+from vafn_sb3.loading import add_trust_flag, load_model_or_exit  # noqa: E402
 from vafn_sb3.pretrained import pretrained_path  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 
@@ -36,18 +36,19 @@ def main() -> None:
     parser.add_argument("--algo", required=True, help="zoo key of the algorithm (required; default: none)")
     parser.add_argument("--env", default="VAFN/ThreeArmReach-v1", help="env ID the model was trained on")
     parser.add_argument("--model", type=Path, required=True,
-                        help="a model saved by benchmarks/learning.py --save (weights only, or an SB3 zip, which is "
-                        "unpickled: your own files only)")
+                        help="a model saved by benchmarks/learning.py --save (weights only, or an SB3 zip, rebuilt "
+                        "without unpickling; with --trust-remote-code SB3's own load keeps its pickled settings too)")
     parser.add_argument("--summary", type=Path, required=True, help="the learning summary the model came from")
     parser.add_argument("--seed", type=int, default=0, help="which seed of the summary the model is")
     parser.add_argument("--n-test", type=int, default=100, help="held-out instructions of the stored evaluation")
     parser.add_argument("--note", default=None,
                         help="a sentence stored with the policy, e.g. why one that fails is shipped (None: no note)")
+    add_trust_flag(parser)
     args = parser.parse_args()
     torch.set_num_threads(1)
     register_algorithms()
     require_algorithm(args.algo)
-    model, _ = load_model(args.model, args.algo, trust_remote_code=True)  # the maintainer's own trained model
+    model, _ = load_model_or_exit(args.model, args.algo, trust_remote_code=args.trust_remote_code)
     save_weights(model, pretrained_path(args.algo, args.env))
     policy = load_weights(pretrained_path(args.algo, args.env))  # exactly the shipped file
     start = time.perf_counter()

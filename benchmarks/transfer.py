@@ -32,7 +32,7 @@ from vafn_gym import InstructionBenchmark, episode_rates  # noqa: E402
 from vafn_gym.benchmarks import confidence_half_width  # noqa: E402
 from vafn_gym.constants import ACTION_PER_ARM  # noqa: E402
 from vafn_sb3 import load_pretrained, shared_actor_for_env  # noqa: E402
-from zoo.registry import require_algorithm  # noqa: E402
+from vafn_sb3.loading import add_trust_flag, load_model_or_exit  # noqa: E402
 
 SETTINGS = (
     ("kuka", 3), ("panda", 3), ("xarm", 3), ("kuka", 4), ("kuka", 6),
@@ -67,6 +67,7 @@ def main() -> None:
     parser.add_argument("--n-test", type=int, default=50, help="held-out instructions per setting")
     parser.add_argument("--tag", default="", help="suffix of the output file")
     parser.add_argument("--out", type=Path, default=REPO_ROOT / "results" / "learning", help="output folder")
+    add_trust_flag(parser)
     args = parser.parse_args()
     torch.set_num_threads(1)
     if args.models is None:
@@ -75,7 +76,7 @@ def main() -> None:
         paths = sorted(glob.glob(args.models))
         if not paths:
             raise SystemExit(f"no model matches {args.models!r}")
-        models = [require_algorithm(args.algo).load(path, device="cpu") for path in paths]
+        models = [load_model_or_exit(path, args.algo, trust_remote_code=args.trust_remote_code)[0] for path in paths]
         source = f"`{args.algo}`, {len(paths)} seed(s): " + ", ".join(Path(p).name for p in paths)
     trained_arms = models[0].action_space.shape[0] // ACTION_PER_ARM
     command = shlex.join(["python", "benchmarks/transfer.py", *sys.argv[1:]])

@@ -4,9 +4,12 @@ import base64
 import json
 import pickle
 import zipfile
+from unittest import mock
 
 import gymnasium as gym
+import numpy as np
 import pytest
+import torch as th
 from sb3_contrib import RecurrentPPO
 from stable_baselines3 import DDPG, PPO, TD3
 from stable_baselines3 import SAC as SB3SAC
@@ -57,11 +60,28 @@ def test_a_saved_zip_loads_as_the_algorithm_that_saved_it(key, build, detected, 
     assert type(loaded.policy) is type(model.policy)
 
 
+@pytest.mark.parametrize("key, build, detected", CASES, ids=[case[0] for case in CASES])
+def test_a_saved_zip_loads_without_unpickling_and_acts_as_sb3s_load(key, build, detected, env, tmp_path):
+    model = build(env)
+    model.save(tmp_path / f"{key}.zip")
+    trusted, trusted_key = load_model(tmp_path / f"{key}.zip", trust_remote_code=True)
+    with mock.patch("stable_baselines3.common.save_util.json_to_data", side_effect=AssertionError("unpickled")):
+        safe, found = load_model(tmp_path / f"{key}.zip")  # SB3's deserialisation is never reached
+    assert found == trusted_key == detected and type(safe) is type(trusted) and type(safe.policy) is type(model.policy)
+    observations = np.stack([env.observation_space.sample() for _ in range(16)])
+    np.testing.assert_array_equal(safe.predict(observations, deterministic=True)[0],
+                                  trusted.predict(observations, deterministic=True)[0])
+    for name, tensor in trusted.policy.state_dict().items():
+        assert th.equal(safe.policy.state_dict()[name], tensor), name
+
+
 def test_a_zoo_run_folder_names_the_algorithm_among_those_sharing_a_policy(env, tmp_path):
     run = tmp_path / "sac" / "VAFN-ThreeArmReach-v1_1"
     run.mkdir(parents=True)
     SAC("SharedAgentPolicy", env, policy_kwargs=dict(net_arch=TINY)).save(run / "VAFN-ThreeArmReach-v1.zip")
     model, key = load_model(run / "VAFN-ThreeArmReach-v1.zip", trust_remote_code=True)
+    assert key == "sac" and type(model) is SAC
+    model, key = load_model(run / "VAFN-ThreeArmReach-v1.zip")  # the same choice without unpickling
     assert key == "sac" and type(model) is SAC
 
 

@@ -6,8 +6,9 @@
     python zoo/enjoy.py --algo sac --env VAFN/ThreeArmReach-v1 -f logs --render-mode human     # GUI window
     python zoo/enjoy.py --scripted --env VAFN/ThreeArmReach-v1 --instruction 2,3,1,3 --record demo.mp4
 
-The model is found like ``python -m rl_zoo3.enjoy`` finds it (``-f/--exp-id/--load-best``); the env kwargs and
-VecNormalize statistics saved with the run are reused. Runs one episode (one instruction) by default; recorded frames
+The model is found like ``python -m rl_zoo3.enjoy`` finds it (``-f/--exp-id/--load-best``) and rebuilt without
+unpickling (:func:`vafn_sb3.loading.load_model`); the env kwargs saved with the run are reused, and its VecNormalize
+statistics (a pickle) only with ``--trust-remote-code``. Runs one episode (one instruction) by default; recorded frames
 carry the overlay of :mod:`vafn_gym.overlay`. Prints return, success and collision per episode (each episode is
 :func:`vafn_gym.run_episode`). With ``--n-test N`` it instead scores the policy on the first N instructions of the
 held-out suite of :class:`vafn_gym.InstructionBenchmark` (the protocol of every curve in the project; 200 in all).
@@ -36,14 +37,20 @@ import vafn_gym  # noqa: E402
 from vafn_gym.benchmarks import episode_seed, run_episode  # noqa: E402
 from vafn_gym.overlay import VIDEO_SUFFIXES, FrameOverlay, VideoWriter  # noqa: E402
 from vafn_media.cli import OneLineParser  # noqa: E402
+from vafn_sb3.loading import add_trust_flag, load_model  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
 from zoo.run_config import load_run_config  # noqa: E402
 
-def load_run(algo: str, env_id: str, folder: str, exp_id: int, load_best: bool) -> tuple[Any, dict, str | None]:
-    """(model, env_kwargs, vecnormalize path or None) of a zoo run ``<folder>/<algo>/<EnvName>_<exp_id>``."""
+def load_run(algo: str, env_id: str, folder: str, exp_id: int, load_best: bool,
+             trust_remote_code: bool = False) -> tuple[Any, dict, str | None]:
+    """(model, env_kwargs, vecnormalize path or None) of a zoo run ``<folder>/<algo>/<EnvName>_<exp_id>``.
+
+    The model loads with :func:`vafn_sb3.loading.load_model`, which rebuilds the SB3 zip without unpickling it; SB3's
+    unpickling ``load`` and the run's ``vecnormalize.pkl`` (a pickle) are read only with ``trust_remote_code``.
+    """
     from rl_zoo3.utils import get_model_path
 
-    algo_class = require_algorithm(algo)
+    require_algorithm(algo)
     env_name = EnvironmentName(env_id)
     try:
         _, model_path, log_path = get_model_path(exp_id, folder, algo, env_name, load_best)
@@ -55,7 +62,10 @@ def load_run(algo: str, env_id: str, folder: str, exp_id: int, load_best: bool) 
         config = load_run_config(config_path)
         env_kwargs = dict(config.get("env_kwargs") or {})
     stats = Path(log_path) / str(env_name) / "vecnormalize.pkl"
-    model = algo_class.load(model_path, device="cpu")
+    if stats.is_file() and not trust_remote_code:
+        raise ValueError(f"{stats} is a pickle (VecNormalize statistics), which runs code when loaded; refused. Pass "
+                         "--trust-remote-code only if you made this run or trust its source")
+    model, _ = load_model(model_path, algo, trust_remote_code=trust_remote_code)
     return model, env_kwargs, str(stats) if stats.is_file() else None
 
 
@@ -184,6 +194,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--frame-skip", type=int, default=2, help="record every N-th control step")
     parser.add_argument("--stochastic", action="store_true", help="sample actions instead of the deterministic policy")
     parser.add_argument("--seed", type=int, default=0, help="seed of the env")
+    add_trust_flag(parser)
     args = parser.parse_args(argv)
     if (args.n_timesteps is not None and args.n_timesteps < 1) or args.frame_skip < 1 or args.n_episodes < 1:
         parser.error("-n, --n-episodes and --frame-skip must be >= 1")
@@ -205,7 +216,8 @@ def _run_main(args: argparse.Namespace) -> list[dict[str, Any]]:
 
         policy = load_pretrained(args.pretrained, env_id=args.env)
     elif not args.scripted:
-        policy, env_kwargs, stats = load_run(args.algo, args.env, args.folder, args.exp_id, args.load_best)
+        policy, env_kwargs, stats = load_run(args.algo, args.env, args.folder, args.exp_id, args.load_best,
+                                             args.trust_remote_code)
     for item in args.env_kwargs:
         key, _, value = item.partition(":")
         try:

@@ -358,7 +358,7 @@ def load_weights(path: str | os.PathLike[str], env: Any = None, device: th.devic
     name = str(path)
     entries = check_zip_entries(Path(path), name, (), bounded=True)
     if CONFIG_ENTRY not in entries or POLICY_ENTRY not in entries:
-        hint = " (an SB3 model zip: load it with the algorithm's load, trusted files only)" if "data" in entries else ""
+        hint = " (an SB3 model zip: load it with vafn_sb3.loading.load_model)" if "data" in entries else ""
         raise ValueError(f"{name} is not a weights file: it needs {CONFIG_ENTRY} and {POLICY_ENTRY}{hint}")
     with zipfile.ZipFile(path) as archive:
         config = _read_config(archive, name)
