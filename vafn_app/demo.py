@@ -214,7 +214,8 @@ def builtin_example(folder: Path, speech: bool | None = None) -> list[DemoInput]
 
 def load_policy(policy: str = "sac", model_path: str | None = None, trust_remote_code: bool = False) -> Any:
     """The packaged policy of algorithm ``policy``, or the saved model at ``model_path`` (a weights-only file, or an
-    SB3 zip with ``trust_remote_code``: see :func:`vafn_sb3.loading.load_model`)."""
+    SB3 zip rebuilt without unpickling; SB3's own load with ``trust_remote_code``: see
+    :func:`vafn_sb3.loading.load_model`)."""
     if model_path is not None:
         from vafn_sb3.loading import load_model
 
