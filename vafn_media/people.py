@@ -202,19 +202,10 @@ def handwritten_glyphs(root: str, split: str) -> dict[int, tuple[np.ndarray, ...
         raise ValueError(f"{folder}: {images.shape} images for {labels.shape} labels")
     start, stop = GLYPH_SPLITS[split]
     images, labels = images[start:stop], labels[start:stop]
-    pool = {}
-    for arm in range(1, NUM_ARMS + 1):
-        glyphs = []
-        for image in images[labels == arm].astype(np.float32) / 255.0:
-            rows, cols = np.nonzero(image > 0.1)
-            box = image[rows.min(): rows.max() + 1, cols.min(): cols.max() + 1]
-            side = max(box.shape)
-            square = np.zeros((side, side), np.float32)
-            top, left = (side - box.shape[0]) // 2, (side - box.shape[1]) // 2
-            square[top: top + box.shape[0], left: left + box.shape[1]] = box
-            glyphs.append(square)
-        pool[arm] = tuple(glyphs)
-    return pool
+    from vafn_media.strips import square_glyph
+
+    return {arm: tuple(square_glyph(image) for image in images[labels == arm].astype(np.float32) / 255.0)
+            for arm in range(1, NUM_ARMS + 1)}
 
 
 def handwriting_strip(glyphs: dict[int, Sequence[np.ndarray]], arms: Sequence[int],

