@@ -8,9 +8,9 @@ Two local corpora, each read from a copy the user made (nothing is downloaded or
 - MNIST's *training* file (``train-images-idx3-ubyte[.gz]`` and ``train-labels-idx1-ubyte[.gz]``); its glyphs are
   split by index (:data:`GLYPH_SPLITS`). MNIST's test split is never read here.
 
-An instruction is said by one speaker where the split has one with every word it needs (otherwise each missing word
-comes from another speaker of the same split), word by word with natural pauses, and written as a row of handwritten
-digits on paper (:func:`handwriting_strip`).
+An instruction is said word by word with natural pauses by a speaker of the split (a word that speaker never said comes
+from another speaker of the same split) and written as a row of handwritten digits on paper
+(:func:`handwriting_strip`).
 """
 
 from __future__ import annotations
@@ -46,6 +46,11 @@ PAPER_RANGE: tuple[int, int] = (170, 255)
 INK_RANGE: tuple[int, int] = (0, 90)
 GLYPH_HEIGHT_RANGE: tuple[int, int] = (20, 64)
 SPACING_RANGE: tuple[float, float] = (-0.05, 0.6)
+#: Training items whose instruction is empty (silence and blank paper), the chance that a degraded copy is
+#: telephone-band (8 kHz) audio, and that it then also gets white noise of 15-25 dB.
+EMPTY_PROBABILITY: float = 0.03
+PHONE_PROBABILITY: float = 0.6
+PHONE_NOISE_PROBABILITY: float = 0.5
 
 
 def speaker_split(speaker: str) -> str:
@@ -262,12 +267,6 @@ def cutout_strip(image: np.ndarray, rng: np.random.Generator, fill: int | None =
 
     return cutout(image, rng, CUTOUT_FRACTION, int(rng.choice([0, 255])) if fill is None else fill)
 
-
-#: Items of the people training set whose instruction is empty (silence and blank paper), and the chance that a
-#: degraded copy is telephone-band (8 kHz) audio, and that it then also gets Table 1's 20 dB white noise.
-EMPTY_PROBABILITY: float = 0.03
-PHONE_PROBABILITY: float = 0.6
-PHONE_NOISE_PROBABILITY: float = 0.5
 
 
 def _degraded(waveform: np.ndarray, rng: np.random.Generator) -> np.ndarray:
