@@ -174,3 +174,25 @@ def test_hidden_frames_read_as_blank_and_weigh_nothing():
     # under the mask, the sequence with and without the hidden digit are equally likely to within the blank frames
     with_digit = sequence_log_likelihood(hidden.log_probs, [1, 2, 3])
     assert with_digit > sequence_log_likelihood(greedy_decode(phi, logits).log_probs, [1, 3])
+
+
+def test_audio_fills_the_digit_a_cutout_hides_without_a_disagreement_flag():
+    from vafn_media.generator import InstructionGenerator
+    from vafn_media.images import read_strip
+    from vafn_media.speech import ESPEAK_SAMPLE_RATE, speak
+    from vafn_media.strips import render_strip
+
+    generator = InstructionGenerator.load()
+    arms = (2, 3, 1)
+    card = render_strip(arms, np.random.default_rng(5))
+    rows, cols = np.nonzero(np.abs(card.astype(float) - np.median(card)) > 60)
+    middle = (cols.min() + cols.max()) // 2
+    half = (cols.max() - cols.min()) // 6
+    masked = card.copy()
+    masked[:, middle - half: middle + half] = 0 if np.median(card) > 128 else 255  # hides the middle digit
+    assert read_strip(masked)[1] is not None
+    alone = generator.transcribe(image=masked)
+    assert alone.low_confidence and any("masked" in w for w in alone.warnings)
+    both = generator.transcribe(audio=(speak(arms), ESPEAK_SAMPLE_RATE), image=masked)
+    assert both.arms == arms
+    assert not any("disagree" in w for w in both.warnings)
