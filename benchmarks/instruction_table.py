@@ -387,11 +387,14 @@ def table1(args: argparse.Namespace, generator, started: float) -> None:
              f"Wall time depends on machine load "
              f"(1-min load average at start: {load[0]:.1f} on {os.cpu_count()} cores); "
              "CPU time is the thread CPU time of the call, which other processes affect much less.", "",
-             "| Input | Difficulty | Time (s) | CPU time (s) | Accuracy (%) | Per digit (%) | Paper accuracy (%) "
-             "| Paper time (s) |",
-             "|---|---|---|---|---|---|---|---|"]
+             "Acted on correctly / wrongly: read right / wrong and not flagged low_confidence (a rejected input is "
+             "neither), what a robot executes.", "",
+             "| Input | Difficulty | Time (s) | CPU time (s) | Accuracy (%) | Per digit (%) | Acted on correctly (%) "
+             "| Acted on wrongly (%) | Paper accuracy (%) | Paper time (s) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     csv_rows = [["split", "input", "difficulty", "time_mean_s", "time_std_s", "cpu_mean_s", "cpu_std_s",
-                 "accuracy_mean", "accuracy_std", "paper_accuracy", "seeds", "items_per_seed", "digit_accuracy"]]
+                 "accuracy_mean", "accuracy_std", "paper_accuracy", "seeds", "items_per_seed", "digit_accuracy",
+                 "acted_right", "acted_wrong"]]
     for row in rows:
         for k, difficulty in enumerate(DIFFICULTY_LENGTHS):
             t_mean, t_std, c_mean, c_std, a_mean, a_std, digit = summarise(heldout, row, difficulty)
@@ -399,12 +402,14 @@ def table1(args: argparse.Namespace, generator, started: float) -> None:
             paper_text = f"{paper[k]:.1f}" if paper else "-"
             paper_time = PAPER_LATENCY_S.get(row.replace(" (noise)", ""), "-")
             low, high = DIFFICULTY_LENGTHS[difficulty]
+            right = np.mean([r.acted_right for r in heldout[(row, difficulty)]])
+            wrong = np.mean([r.acted_wrong for r in heldout[(row, difficulty)]])
             lines.append(f"| {row} | {difficulty.capitalize()} ({low}-{high}) | {t_mean:.4f} ± {t_std:.4f} | "
-                         f"{c_mean:.4f} ± {c_std:.4f} | {a_mean:.1f} ± {a_std:.1f} | {digit:.1f} | {paper_text} | "
-                         f"{paper_time} |")
+                         f"{c_mean:.4f} ± {c_std:.4f} | {a_mean:.1f} ± {a_std:.1f} | {digit:.1f} | {right:.1f} | "
+                         f"{wrong:.1f} | {paper_text} | {paper_time} |")
             csv_rows.append(["heldout", row, difficulty, f"{t_mean:.6f}", f"{t_std:.6f}", f"{c_mean:.6f}",
                              f"{c_std:.6f}", f"{a_mean:.2f}", f"{a_std:.2f}", paper[k] if paper else "", args.seeds,
-                             args.items, f"{digit:.2f}"])
+                             args.items, f"{digit:.2f}", f"{right:.2f}", f"{wrong:.2f}"])
     if args.in_distribution:
         compare_rows = ["Audio", "Visual", "Audio-Visual"]
         inside = evaluate_split(generator, "test", args.in_distribution, args.items, args.workers, compare_rows)

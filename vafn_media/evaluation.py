@@ -56,6 +56,18 @@ class CellResult:
     #: Per item: digit errors (edit distance, capped at the reference length) and reference digits.
     digit_errors: np.ndarray | None = None
     digits: np.ndarray | None = None
+    #: Per item: the result was flagged ``low_confidence`` (a rejected input counts as flagged: nothing is acted on).
+    flagged: np.ndarray | None = None
+
+    @property
+    def acted_right(self) -> float:
+        """Share (%) of items read right and not flagged: what a robot acts on correctly."""
+        return 100.0 * float(np.mean(self.correct & ~self.flagged)) if self.flagged is not None else float("nan")
+
+    @property
+    def acted_wrong(self) -> float:
+        """Share (%) of items read wrong and not flagged: what a robot acts on wrongly."""
+        return 100.0 * float(np.mean(~self.correct & ~self.flagged)) if self.flagged is not None else float("nan")
 
     @property
     def digit_accuracy(self) -> float:
@@ -106,6 +118,7 @@ def run_cell(transcribe: Callable[..., object], items: RawItems, eval_seed: int,
     count = len(items.arms) if limit is None else min(limit, len(items.arms))
     correct, seconds, cpu, confidence = np.zeros(count, bool), np.zeros(count), np.zeros(count), np.zeros(count)
     errors, digits = np.zeros(count, int), np.array([len(items.arms[i]) for i in range(count)])
+    flagged = np.ones(count, bool)
     for i in range(count):
         kwargs = corrupted_inputs(items, eval_seed, i, row)
         start, start_cpu = time.perf_counter(), time.thread_time()
@@ -118,8 +131,9 @@ def run_cell(transcribe: Callable[..., object], items: RawItems, eval_seed: int,
         if result is not None:
             correct[i] = tuple(result.instruction.arms) == tuple(items.arms[i])
             confidence[i] = result.confidence
+            flagged[i] = bool(result.low_confidence)
             errors[i] = min(digits[i], edit_distance(tuple(items.arms[i]), tuple(result.instruction.arms)))
-    return CellResult(correct, seconds, cpu, confidence, errors, digits)
+    return CellResult(correct, seconds, cpu, confidence, errors, digits, flagged)
 
 
 def edit_distance(a: tuple[int, ...], b: tuple[int, ...]) -> int:
