@@ -21,6 +21,8 @@ EXTRAS = {
         "imageio>=2.30", "psycopg2-binary>=2.9",
     ],
     "pettingzoo": ["pettingzoo>=1.24"],
+    # zoo/reproduce.py runs its training jobs on Ray (a local one, or a cluster: docs/reproduction.md).
+    "ray": ["ray>=2.9"],
     # panda-gym for throughput; pocketsphinx (its wheel ships the en-us model) as the real-people reference reader.
     "bench": ["panda-gym>=3.0.7", "pocketsphinx>=5.0"],
 }

@@ -6,7 +6,9 @@
     python zoo/reproduce.py --summary --out results --overwrite-results   # rewrite SUMMARY.md from a results folder
 
 The study is data (``zoo/study.py``): every method of every panel trains with ``benchmarks/learning.py`` from its YAML
-for the mode's equal env-step budget, one single-threaded process per (method, seed), ``--jobs`` at a time; every
+for the mode's equal env-step budget, one single-threaded process per (method, seed), each a job on Ray
+(``zoo/jobs.py``: a local Ray capped by ``--num-cpus``, or ``--address``'s cluster; a rerun with ``--resume`` skips the
+jobs whose record in ``<work>/jobs/`` matches their config and commit); every
 panel is then one ``benchmarks/adaptation.py`` call, the one evaluation protocol (the same held-out *test*
 instructions, support sets and K for every method, the scripted ceiling and the random floor beside them).
 
@@ -21,7 +23,7 @@ instructions, support sets and K for every method, the scripted ceiling and the 
 
 Every run writes into ``runs/reproduce-<mode>-<timestamp>/`` (models and logs; figures and SUMMARY.md in its
 ``results/``) unless ``--work`` / ``--out`` say otherwise; the committed ``results/`` is only written with
-``--overwrite-results``. ``--resume --work <folder>`` keeps the models already trained there.
+``--overwrite-results``. ``--resume --work <folder>`` keeps the models already trained there at this commit.
 """
 
 from __future__ import annotations
@@ -33,7 +35,6 @@ import os
 import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -120,6 +121,17 @@ class TrainJob:
         """stdout and stderr of the training process."""
         return self.work / "logs" / f"{self.panel.name}_{self.method.label}_seed{self.seed}.log"
 
+    @property
+    def job_id(self) -> str:
+        """The name of its Ray job and of its record ``<work>/jobs/<job_id>.json``."""
+        return f"train_{self.panel.name}_{self.method.label}_seed{self.seed}"
+
+    def config(self) -> dict[str, Any]:
+        """Its job's config for ``zoo.jobs.run_command`` (``python``: the worker's interpreter); a rerun skips the job
+        only when its record holds the same config."""
+        return {"panel": self.panel.name, "method": self.method.label, "algo": self.method.algo, "seed": self.seed,
+                "command": ["python", *self.command()[1:]], "output": str(self.model_path), "log": str(self.log_path)}
+
     def command(self) -> list[str]:
         """learning.py's arguments: the mode's step budget, one final evaluation, the model kept."""
         steps = self.budget.timesteps
@@ -174,41 +186,43 @@ def makespan(costs: list[float], n_workers: int) -> float:
     return max(finish)
 
 
-def run_training(jobs: list[TrainJob], n_workers: int) -> list[dict[str, Any]]:
-    """Train every job whose model is missing, ``n_workers`` processes at a time, the longest first (by the committed
-    costs, which also drive the progress bar and the estimate printed before it starts); one record per job."""
+def run_training(jobs: list[TrainJob], n_workers: int, address: str | None = None) -> list[dict[str, Any]]:
+    """Train every job not finished at this commit as Ray jobs (``zoo.jobs``), ``n_workers`` at a time, the longest
+    first (by the committed costs, which also drive the progress bar and the estimate printed before it starts), each
+    retried by Ray if it fails or its worker dies; one record per job, failed ones with their error."""
+    from zoo.jobs import git_commit, is_finished, read_record, run_command, run_jobs, start_ray
 
-    def run(job: TrainJob) -> dict[str, Any]:
-        record = {"panel": job.panel.name, "method": job.method.label, "seed": job.seed, "reused": True, "error": ""}
-        if not job.model_path.is_file():
-            job.model_dir.mkdir(parents=True, exist_ok=True)
-            job.log_path.parent.mkdir(parents=True, exist_ok=True)
-            with job.log_path.open("w") as log:
-                result = run_script(job.command(), stdout=log, stderr=subprocess.STDOUT)
-            record["reused"] = False
-            if result.returncode != 0 or not job.model_path.is_file():
-                record["error"] = f"exit {result.returncode}, see {job.log_path}"
-        return record
-
-    per_step = measured_cpu_per_step()
-    todo = sorted(((estimated_cpu_s(job, per_step), job) for job in jobs if not job.model_path.is_file()),
-                  key=lambda pair: -pair[0])
-    total = sum(cost for cost, _ in todo)
+    if not jobs:
+        return []
+    folder, commit, per_step = jobs[0].work / "jobs", git_commit(), measured_cpu_per_step()
+    cost = {job.job_id: 0.0 if is_finished(read_record(folder, job.job_id), job.config(), commit)
+            else estimated_cpu_s(job, per_step) for job in jobs}
+    ordered = sorted(jobs, key=lambda job: -cost[job.job_id])
+    todo = [cost[job.job_id] for job in ordered if cost[job.job_id] > 0]
     if todo:
-        print(f"training {len(todo)} jobs ({len(jobs) - len(todo)} already trained): about {total / 3600:.1f} CPU-h "
-              f"by the committed costs, about {makespan([c for c, _ in todo], n_workers) / 3600:.1f} h with "
-              f"{n_workers} job(s) at a time on free cores as fast as theirs")
-    records = [run(job) for job in jobs if job.model_path.is_file()]
-    with ThreadPoolExecutor(max_workers=n_workers) as pool, \
-            tqdm(total=round(total), desc="training (estimated CPU-s)", unit="s") as progress:
-        futures = {pool.submit(run, job): cost for cost, job in todo}
-        for future in as_completed(futures):
-            record = future.result()
-            if record["error"]:
-                tqdm.write(f"{record['panel']}/{record['method']} seed {record['seed']} FAILED: {record['error']}")
-            progress.update(round(futures[future]))
-            records.append(record)
-    return records
+        print(f"training {len(todo)} jobs ({len(jobs) - len(todo)} already trained at this commit): about "
+              f"{sum(todo) / 3600:.1f} CPU-h by the committed costs, about {makespan(todo, n_workers) / 3600:.1f} h "
+              f"with {n_workers} job(s) at a time on free cores as fast as theirs")
+    ray = start_ray(address, None if address else n_workers)
+    with tqdm(total=round(sum(todo)), desc="training (estimated CPU-s)", unit="s") as progress:
+        def done(record: dict[str, Any]) -> None:
+            if record["status"] != "ok":
+                tqdm.write(f"{record['job_id']} FAILED: {record['error']}")
+            progress.update(round(cost[record["job_id"]]))
+
+        try:
+            report = run_jobs(run_command, [(job.job_id, job.config()) for job in ordered], folder, commit=commit,
+                              max_in_flight=n_workers, on_record=done)
+        finally:
+            ray.shutdown()
+    by_id = {record["job_id"]: (record, reused) for records, reused in
+             ((report.skipped, True), (report.done, False), (report.failed, False)) for record in records}
+    rows = []
+    for job in jobs:
+        record, reused = by_id[job.job_id]
+        rows.append({"panel": job.panel.name, "method": job.method.label, "seed": job.seed, "reused": reused,
+                     "error": record.get("error", ""), "wall_s": record.get("wall_s"), "cpu_s": record.get("cpu_s")})
+    return rows
 
 
 def training_costs(jobs: list[TrainJob]) -> list[dict[str, Any]]:
@@ -539,8 +553,11 @@ def main(argv: list[str] | None = None) -> Path:
                         help="models and logs (None: a fresh runs/reproduce-<mode>-<timestamp>)")
     parser.add_argument("--overwrite-results", action="store_true",
                         help="allow --out to be the committed results/ folder (maintainers refreshing it)")
-    parser.add_argument("--jobs", type=int, default=min(os.cpu_count() or 1, 16),
-                        help="parallel single-threaded processes")
+    parser.add_argument("--num-cpus", "--jobs", dest="num_cpus", type=int, default=None,
+                        help="training jobs at a time on Ray (the local Ray's CPUs) and evaluation processes "
+                             "(None: this machine's cores, at most 16; --jobs is an alias)")
+    parser.add_argument("--address", default=None,
+                        help="join this running Ray cluster (ray start --head) instead of starting a local Ray")
     parser.add_argument("--panels", nargs="+", default=None, choices=[p.name for p in PANELS],
                         help="subset of the study's panels")
     parser.add_argument("--methods", nargs="+", default=None, help="subset of the panels' method labels")
@@ -550,8 +567,9 @@ def main(argv: list[str] | None = None) -> Path:
     parser.add_argument("--fig4-only", action="store_true",
                         help="only Fig. 4 with the packaged pretrained policies (no training; a few minutes)")
     args = parser.parse_args(argv)
-    if args.jobs < 1:
-        parser.error("--jobs must be >= 1")
+    if args.num_cpus is not None and args.num_cpus < 1:
+        parser.error("--num-cpus must be >= 1")
+    n_workers = args.num_cpus or min(os.cpu_count() or 1, 16)
     if args.mode == "summary" and args.out is None:
         parser.error("--summary needs --out: the results folder to summarise")
     work = args.work or REPO_ROOT / "runs" / f"reproduce-{args.mode}-{time.strftime('%Y%m%d-%H%M%S')}"
@@ -586,14 +604,14 @@ def main(argv: list[str] | None = None) -> Path:
     times: dict[str, float] = {"load": os.getloadavg()[0]}
     start = time.perf_counter()
     jobs = train_jobs(budget, panels, work)
-    records = run_training(jobs, args.jobs)
+    records = run_training(jobs, n_workers, args.address)
     costs = training_costs(train_jobs(budget, PANELS, work))  # also the panels an earlier run here trained
     if costs:
         write_csv_rows(costs, out / "training_costs.csv")
     times["train"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    status = {panel.name: evaluate_panel(panel, budget, work, out, args.jobs)
+    status = {panel.name: evaluate_panel(panel, budget, work, out, n_workers)
               for panel in tqdm(panels, desc="evaluation")}
     for name, result in status.items():
         if not result["ok"]:
