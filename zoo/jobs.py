@@ -48,12 +48,13 @@ def import_ray() -> Any:
 def start_ray(address: str | None = None, num_cpus: int | None = None) -> Any:
     """Connect to Ray unless already connected: ``address``'s cluster, else a local one with ``num_cpus`` CPUs."""
     ray = import_ray()
-    if not ray.is_initialized():
+    if not ray.is_initialized():  # workers import zoo.jobs from this checkout's path (the same on every node)
+        job_config = ray.job_config.JobConfig(code_search_path=[str(REPO_ROOT)])
         if address:
-            ray.init(address=address, log_to_driver=False)
+            ray.init(address=address, log_to_driver=False, job_config=job_config)
         else:  # jobs return small dicts: a small object store, no dashboard
             ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False,
-                     object_store_memory=200 * 1024**2)
+                     object_store_memory=200 * 1024**2, job_config=job_config)
     return ray
 
 
