@@ -238,17 +238,31 @@ def _compact_shard(args: tuple[int, str, int, int, str, tuple[tuple[str, float],
             store.append(log_mel(copy, SAMPLE_RATE)[0].numpy().astype(np.float16))
         clean.append(stored_strip(image, arms, None))
         masked.append(stored_strip(cutout(image, rng), arms, image))
+    return save_items(path, raw.arms, audio, clean, masked)
+
+
+def save_items(path: str | Path, arms: Sequence[Sequence[int]], audio: Sequence[Sequence[np.ndarray]],
+               clean: Sequence[np.ndarray], masked: Sequence[np.ndarray]) -> str:
+    """Write training-ready items atomically in the layout :meth:`TrainingData.load` reads; returns ``path``.
+
+    :param path: the ``.npz`` file.
+    :param arms: each item's arm ids.
+    :param audio: per copy (clean first, then the degraded ones), each item's (N_MELS, T) float16 features.
+    :param clean: each item's uint8 strip.
+    :param masked: each item's uint8 Cutout strip.
+    """
+    from vafn_gym.files import atomic_write
+
     arrays = {}
     for k, store in enumerate(audio):
         arrays[f"audio{k}"] = np.concatenate(store, axis=1)
         arrays[f"frames{k}"] = np.array([a.shape[1] for a in store], np.int64)
-    np.savez(path + ".tmp.npz",
-             arms=np.array([list(a) + [0] * (MAX_INSTRUCTION_LENGTH - len(a)) for a in raw.arms], np.int8),
-             lengths=np.array([len(a) for a in raw.arms], np.int8), **arrays,
-             clean=np.concatenate(clean, axis=1), clean_widths=np.array([c.shape[1] for c in clean], np.int64),
-             masked=np.concatenate(masked, axis=1), masked_widths=np.array([m.shape[1] for m in masked], np.int64))
-    os.replace(path + ".tmp.npz", path)
-    return path
+    atomic_write(path, lambda tmp: np.savez(
+        tmp, arms=np.array([list(a) + [0] * (MAX_INSTRUCTION_LENGTH - len(a)) for a in arms], np.int8),
+        lengths=np.array([len(a) for a in arms], np.int8), **arrays,
+        clean=np.concatenate(clean, axis=1), clean_widths=np.array([c.shape[1] for c in clean], np.int64),
+        masked=np.concatenate(masked, axis=1), masked_widths=np.array([m.shape[1] for m in masked], np.int64)))
+    return str(path)
 
 
 @dataclass

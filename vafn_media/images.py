@@ -204,12 +204,13 @@ def find_mask(gray: np.ndarray) -> tuple[int, int, int, int] | None:
     best = None
     for level in {float(gray.min()), float(gray.max())}:
         same = (gray == level).astype(np.uint8)
+        total = int(same.sum())
         count, _, stats, _ = cv2.connectedComponentsWithStats(same, connectivity=4)
         for left, top, width, height, pixels in stats[1:count]:
             box = width * height
             if (min(width, height) < MASK_MIN_SIDE or not MASK_AREA_RANGE[0] * area <= box <= MASK_AREA_RANGE[1] * area
                     or pixels < MASK_SOLIDITY * box
-                    or same.sum() - pixels > MASK_OUTSIDE_SHARE * (area - box)):
+                    or total - pixels > MASK_OUTSIDE_SHARE * (area - box)):
                 continue
             if best is None or box > (best[1] - best[0]) * (best[3] - best[2]):
                 best = (int(top), int(top + height), int(left), int(left + width))

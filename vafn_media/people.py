@@ -299,8 +299,7 @@ def people_training_data(speech_root: str | Path, handwriting_root: str | Path, 
     """
     from tqdm import tqdm
 
-    from vafn_gym.files import atomic_write
-    from vafn_media.dataset import AUGMENTED_COPIES, TrainingData, source_digest, stored_strip
+    from vafn_media.dataset import AUGMENTED_COPIES, TrainingData, save_items, source_digest, stored_strip
     from vafn_media.features import log_mel
 
     if split == "test":
@@ -326,13 +325,5 @@ def people_training_data(speech_root: str | Path, handwriting_root: str | Path, 
             clean.append(stored_strip(strip, arms, None))
             masked.append(stored_strip(cutout_strip(strip, rng), arms, strip))
             arms_list.append(arms)
-        arrays = {f"audio{k}": np.concatenate(store, axis=1) for k, store in enumerate(audio)}
-        arrays.update({f"frames{k}": np.array([a.shape[1] for a in store], np.int64) for k, store in enumerate(audio)})
-        Path(cache_dir).mkdir(parents=True, exist_ok=True)
-        atomic_write(path, lambda tmp: np.savez(
-            tmp, arms=np.array([list(a) + [0] * (MAX_INSTRUCTION_LENGTH - len(a)) for a in arms_list],
-                                           np.int8),
-            lengths=np.array([len(a) for a in arms_list], np.int8), **arrays,
-            clean=np.concatenate(clean, axis=1), clean_widths=np.array([c.shape[1] for c in clean], np.int64),
-            masked=np.concatenate(masked, axis=1), masked_widths=np.array([m.shape[1] for m in masked], np.int64)))
+        save_items(path, arms_list, audio, clean, masked)
     return TrainingData.load([str(path)])
