@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -26,14 +25,7 @@ import torch  # noqa: E402
 import vafn_gym  # noqa: E402,F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark, episode_rates  # noqa: E402
 from vafn_gym.benchmarks import HELDOUT_VERSION  # noqa: E402
-from vafn_gym.files import write_csv_rows  # noqa: E402
-
-
-def commit() -> str:
-    """The repository's HEAD commit (with ``+dirty`` where tracked files differ from it)."""
-    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True)
-    dirty = subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=REPO_ROOT).returncode != 0
-    return head.stdout.strip() + ("+dirty" if dirty else "")
+from vafn_gym.files import repository_commit, write_csv_rows  # noqa: E402
 
 
 def table(name: str, rows: list[dict]) -> list[str]:
@@ -65,8 +57,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     distinct = len({task.to_code() for task in benchmark.test_tasks})
     lines = [f"# Held-out suite ({HELDOUT_VERSION})", "",
              f"`python benchmarks/heldout.py --pretrained {' '.join(args.pretrained)} --env {args.env}` at commit "
-             f"{commit()}: {len(benchmark.test_tasks)} test instructions ({distinct} distinct), one deterministic "
-             "episode each.", ""]
+             f"{repository_commit(REPO_ROOT)}: {len(benchmark.test_tasks)} test instructions ({distinct} distinct), "
+             "one deterministic episode each.", ""]
     all_rows = []
     for algo in args.pretrained:
         start = time.perf_counter()

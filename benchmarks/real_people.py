@@ -14,12 +14,13 @@ pocketsphinx 5's en-us model with a JSGF grammar of the command words as a refer
 from __future__ import annotations
 
 import argparse
-import subprocess
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+
+from vafn_gym.files import repository_commit
 
 RESULTS = Path(__file__).resolve().parents[1] / "results" / "real_people"
 #: Seed of the benchmark's instructions and degradations (the selection split uses the training seed, never this).
@@ -28,15 +29,6 @@ SEED: int = 9100
 AUDIO_CONDITIONS: tuple[str, ...] = ("clean", "8 kHz", "8 kHz + 20 dB")
 #: Instruction lengths of the benchmark (the paper's easy and medium buckets).
 LENGTHS: tuple[int, int] = (1, 5)
-
-
-def commit() -> str:
-    """The repository's commit (with ``+dirty`` when the tree has changes)."""
-    root = Path(__file__).resolve().parents[1]
-    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=root).stdout
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True,
-                           cwd=root).stdout
-    return head.strip() + ("+dirty" if dirty.strip() else "")
 
 
 def audio_condition(waveform: np.ndarray, condition: str, rng: np.random.Generator) -> tuple[np.ndarray, int]:
@@ -201,7 +193,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     command = (f"python benchmarks/real_people.py --speech <spoken words> --handwriting <MNIST training files> "
                f"--sequences {args.sequences} --strips {args.strips}" + " --pocketsphinx" * args.pocketsphinx
                + (f" --checkpoint {args.checkpoint.name}" if args.checkpoint else ""))
-    header = (f"# Real people's commands\n\nCommit {commit()}; `{command}`; "
+    root = Path(__file__).resolve().parents[1]
+    header = (f"# Real people's commands\n\nCommit {repository_commit(root)}; `{command}`; "
               f"{time.time() - started:.0f} s. Test speakers and glyphs only (vafn_media.people).")
     write(rows, args.out, header)
     print((args.out / "real_people.md").read_text())

@@ -121,3 +121,13 @@ def write_csv_rows(rows: Sequence[Mapping[str, Any]], path: str | os.PathLike[st
             writer.writerows(rows)
 
     return atomic_write(path, write)
+
+
+def repository_commit(root: str | os.PathLike[str]) -> str:
+    """The short HEAD commit of the git checkout at ``root``, with ``+dirty`` where tracked files differ from it (what
+    a results file names as the code it came from)."""
+    import subprocess
+
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True)
+    dirty = subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=root).returncode != 0
+    return head.stdout.strip() + ("+dirty" if dirty else "")
