@@ -21,6 +21,11 @@ every later reading: it runs at every K and collects no support set, its adaptat
 inside the episode.
 The scripted controller (the ceiling) and a uniform random policy (the floor) run on the same tasks.
 
+``--dynamics test`` runs every task under every held-out dynamics variant of ``vafn_gym.dynamics.DYNAMICS_VARIANTS``
+(the support set is collected under the variant too; a ``variant`` column names it, and
+``adaptation_by_variant.csv`` gives each variant's rates): the study of adapting to a changed robot rather than to a
+hidden target (docs/results.md, "Adapting to changed dynamics").
+
 Writes to ``--out``: ``adaptation.csv`` (one row per method, seed, task and K), ``adaptation_summary.csv`` (per method
 and K: mean over seeds of the per-seed task means, with a 95 % Student-t half width over seeds),
 ``adaptation_by_length.csv`` (the same per instruction length, with the share of the task's arms the support sets show
@@ -62,6 +67,7 @@ from tqdm import tqdm  # noqa: E402
 
 import vafn_gym  # noqa: E402,F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark, RandomPolicy, ScriptedController  # noqa: E402
+from vafn_gym.dynamics import DYNAMICS_VARIANTS, DYNAMICS_VERSION, NOMINAL  # noqa: E402
 from vafn_gym.files import write_csv_rows  # noqa: E402
 from vafn_gym.instructions import Instruction  # noqa: E402
 from vafn_sb3.common.adaptation import SUPPORT_MODES, evaluate_adaptation, per_arm_tasks  # noqa: E402
@@ -162,6 +168,26 @@ def estimator_of(method: Method, args: argparse.Namespace) -> Any:
     return load_estimator(method.target_inference, getattr(args, ESTIMATOR_FLAGS[method.target_inference]))
 
 
+def variant_settings(args: argparse.Namespace) -> list[tuple[str, dict[str, Any]]]:
+    """``(variant label, env kwargs)`` of every dynamics setting the study runs: the env's own (``--dynamics none``) or
+    each held-out variant."""
+    if args.dynamics == "none":
+        return [("", {})]
+    return [(variant.label, {"dynamics": variant.as_dict()}) for variant in DYNAMICS_VARIANTS[args.dynamics]]
+
+
+def adaptation_rows(policy: Any, args: argparse.Namespace, tasks: list, env_kwargs: dict[str, Any],
+                    k_values: list[int], support: str = "episodes") -> list[dict]:
+    """:func:`evaluate_adaptation` rows of ``policy`` on ``tasks`` under every setting of :func:`variant_settings`."""
+    rows = []
+    for label, dynamics in variant_settings(args):
+        variant_rows = evaluate_adaptation(policy, args.env, tasks, n_support=args.n_support, k_values=k_values,
+                                           n_eval_episodes=args.n_eval_episodes, seed=args.seed,
+                                           env_kwargs={**env_kwargs, **dynamics}, support=support)
+        rows += [{**row, "variant": label} if label else row for row in variant_rows]
+    return rows
+
+
 def evaluate_model(method: Method, path: Path, args: argparse.Namespace, tasks: list) -> list[dict]:
     """Adaptation rows of one saved model of ``method`` (K = 0 only when the method is zero-shot)."""
     torch.set_num_threads(1)
@@ -175,9 +201,7 @@ def evaluate_model(method: Method, path: Path, args: argparse.Namespace, tasks: 
         model = inference_policy_for_env(model, env, method.target_inference, estimator, steps=0,
                                          refine_steps=args.refine_steps, refine_solver=args.refine_solver)
         env.close()
-    rows = evaluate_adaptation(model, args.env, tasks, n_support=args.n_support,
-                               k_values=[0] if method.zero_shot else args.k, n_eval_episodes=args.n_eval_episodes,
-                               seed=args.seed, env_kwargs=env_kwargs, support=args.support)
+    rows = adaptation_rows(model, args, tasks, env_kwargs, [0] if method.zero_shot else args.k, args.support)
     return [{"method": method.label, "seed": seed_of(path), **row} for row in rows]
 
 
@@ -203,9 +227,7 @@ def evaluate_references(args: argparse.Namespace, tasks: list) -> list[dict]:
     rows = []
     for label, policy in policies.items():
         rows += [{"method": label, "seed": 0, **row}
-                 for row in evaluate_adaptation(policy, args.env, tasks, n_support=args.n_support, k_values=[0],
-                                                n_eval_episodes=args.n_eval_episodes, seed=args.seed,
-                                                env_kwargs=args.env_kwargs)]
+                 for row in adaptation_rows(policy, args, tasks, args.env_kwargs, [0])]
     return rows
 
 
@@ -214,7 +236,7 @@ def read_rows(path: Path) -> list[dict]:
     integers = ("seed", "task_index", "k", "n_support")
 
     def parse(key: str, value: str) -> Any:
-        if key in ("method", "task"):
+        if key in ("method", "task", "variant"):
             return value
         return int(value) if key in integers else float(value or "nan")
 
@@ -234,6 +256,21 @@ def summary_rows(curves: dict[str, dict[str, AdaptationCurve]]) -> list[dict]:
                 entry[f"{metric}_ci95"] = float(curve.half_width[index])
             summary.append(entry)
     return summary
+
+
+def by_variant_rows(rows: list[dict]) -> list[dict]:
+    """``adaptation_by_variant.csv`` rows: per method, dynamics variant and K, each rate's mean over seeds with its
+    95 % t half width."""
+    curves = aggregate_adaptation([{**row, "cell": (row["method"], row["variant"])} for row in rows], group="cell")
+    table = []
+    for (method, variant), first in curves["success_rate"].items():
+        for index, k in enumerate(first.k):
+            entry: dict[str, Any] = {"method": method, "variant": variant, "k": int(k), "n_seeds": first.n_seeds}
+            for metric in ("success_rate", "collision_rate"):
+                entry[metric] = float(curves[metric][method, variant].mean[index])
+                entry[f"{metric}_ci95"] = float(curves[metric][method, variant].half_width[index])
+            table.append(entry)
+    return table
 
 
 def by_length_rows(rows: list[dict]) -> list[dict]:
@@ -282,8 +319,10 @@ def figure_title(meta: dict[str, Any]) -> str:
     prefix = f"{meta['title']}\n" if meta.get("title") else ""
     support = support_budget(meta["n_support_steps"], meta["support_episodes_mean"], max(meta.get("k", [1])),
                              meta.get("support", "episodes"))
-    return (f"{prefix}{meta['env']}: {meta['n_tasks']} held-out test instructions of lengths {low}-{high}; {support}; "
-            "mean over seeds ± 95 % CI")
+    dynamics = meta.get("dynamics")
+    variants = f" × {len(dynamics['variants'])} held-out dynamics variants" if dynamics else ""
+    return (f"{prefix}{meta['env']}: {meta['n_tasks']} held-out test instructions of lengths {low}-{high}{variants}; "
+            f"{support}; mean over seeds ± 95 % CI")
 
 
 def replot(out: Path, title: str | None = None) -> Path:
@@ -342,6 +381,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                              "instruction per arm of the task (every hidden target shown; the budget split)")
     parser.add_argument("--n-eval-episodes", type=int, default=1,
                         help="deterministic episodes per task and K (the env is deterministic given the task)")
+    parser.add_argument("--dynamics", choices=["none", *DYNAMICS_VARIANTS], default="none",
+                        help="run every task under every dynamics variant of this split (none: the env's own)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the support rollouts and evaluation episodes")
     parser.add_argument("--append", action="store_true",
                         help="keep the other methods' rows of an earlier run in --out (same tasks and flags)")
@@ -412,9 +453,14 @@ def main(argv: list[str] | None = None) -> None:
     write_csv_rows(rows, args.out / "adaptation.csv")
     write_csv_rows(summary, args.out / "adaptation_summary.csv")
     write_csv_rows(by_length_rows(rows), args.out / "adaptation_by_length.csv")
+    if args.dynamics != "none":
+        write_csv_rows(by_variant_rows(rows), args.out / "adaptation_by_variant.csv")
     episodes = support_episodes(args, tasks)
     meta = {"command": shlex.join(sys.argv), "title": title, "env": args.env, "env_kwargs": args.env_kwargs,
             "test_lengths": [args.min_length, args.max_length], "n_tasks": len(tasks), "benchmark_seed": benchmark.seed,
+            "dynamics": None if args.dynamics == "none" else {
+                "version": DYNAMICS_VERSION, "split": args.dynamics,
+                "variants": [v.as_dict() for v in DYNAMICS_VARIANTS[args.dynamics]], "nominal": NOMINAL.as_dict()},
             "n_support_steps": args.n_support, "support": args.support, "support_episodes_mean": episodes, "k": args.k,
             "methods": method_records + [{"label": m.label, "algo": m.algo,
                                           "models": earlier_models.get(m.label, []) + [str(p) for p in m.paths],

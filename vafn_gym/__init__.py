@@ -7,6 +7,7 @@ from gymnasium.envs.registration import register
 
 from vafn_gym.benchmarks import InstructionBenchmark, confidence_half_width, episode_rates, run_episode
 from vafn_gym.controllers import RandomPolicy, ScriptedController, trilaterate
+from vafn_gym.dynamics import DYNAMICS_VARIANTS, Dynamics, DynamicsSampler
 from vafn_gym.envs import MultiArmEnv, MultiArmStreamEnv
 from vafn_gym.instructions import Instruction, Waypoint, difficulty_of
 from vafn_gym.layout import ArmLayout
@@ -21,7 +22,7 @@ from vafn_gym.queue import (
 from vafn_gym.robots import KUKA_IIWA, PANDA, ROBOTS, XARM6, RobotSpec
 from vafn_gym.task import INACTIVE_ARM_MODES, TARGET_MODES, WAITING_GOALS, InstructionTask, RewardConfig
 from vafn_gym.tasks import SPLITS, TaskSampler
-from vafn_gym.wrappers import GoalDetours
+from vafn_gym.wrappers import DynamicsTasks, GoalDetours
 
 #: ID -> (entry point, default kwargs). docs/environments.md documents each one.
 _REGISTRY = {
@@ -41,6 +42,7 @@ for _env_id, (_entry_point, _kwargs) in _REGISTRY.items():
     ENV_IDS.append(_env_id)
 
 __all__ = [
+    "DYNAMICS_VARIANTS",
     "ENV_IDS",
     "INACTIVE_ARM_MODES",
     "WAITING_GOALS",
@@ -52,6 +54,9 @@ __all__ = [
     "XARM6",
     "ArmLayout",
     "ArrivalProcess",
+    "Dynamics",
+    "DynamicsSampler",
+    "DynamicsTasks",
     "GoalDetours",
     "Instruction",
     "InstructionBenchmark",

@@ -8,8 +8,35 @@ import gymnasium as gym
 import numpy as np
 
 from vafn_gym.constants import GOAL_SLICE
+from vafn_gym.dynamics import Dynamics, DynamicsSampler
 
-__all__ = ["GoalDetours"]
+__all__ = ["DynamicsTasks", "GoalDetours"]
+
+
+class DynamicsTasks(gym.Wrapper):
+    """Makes dynamics variants the env's *tasks*: ``set_task(variant)`` fixes the arms' dynamics (instructions are still
+    drawn by the env), ``sampler.fixed_set`` lists the train variants. MAML-SAC then meta-learns over variants.
+
+    ``set_task(None)`` returns to the env's own ``dynamics`` setting (e.g. a variant drawn at every reset), which is
+    what MAML-SAC's warm-up and the end of its ``learn`` use.
+
+    :param env: a :class:`~vafn_gym.envs.MultiArmEnv` (any wrappers).
+    :param split: the variant split whose list ``sampler`` gives ("train"; "test" only to evaluate).
+    """
+
+    def __init__(self, env: gym.Env, split: str = "train") -> None:
+        super().__init__(env)
+        if not hasattr(env.unwrapped, "set_dynamics"):
+            raise TypeError(f"DynamicsTasks needs a MultiArmEnv, got {type(env.unwrapped).__name__}")
+        self.sampler = DynamicsSampler(split)
+
+    def set_task(self, task: Any) -> None:
+        """Fix the dynamics variant (a :class:`Dynamics` or a dict of its fields; ``None``: the env's own setting)."""
+        self.env.unwrapped.set_dynamics(None if task is None else Dynamics.coerce(task))
+
+    def get_task(self) -> Dynamics:
+        """The dynamics the arms follow now."""
+        return self.env.unwrapped.dynamics
 
 
 class GoalDetours(gym.Wrapper):

@@ -34,6 +34,7 @@ from vafn_gym.constants import (
     WORKSPACE_HIGH,
     WORKSPACE_LOW,
 )
+from vafn_gym.dynamics import Dynamics, DynamicsSampler
 from vafn_gym.instructions import Instruction
 from vafn_gym.layout import FRAMES, MAX_ARMS, ArmLayout
 from vafn_gym.robots import RobotSpec, get_robot
@@ -104,6 +105,10 @@ class MultiArmEnv(gym.Env):
     :param render_width: frame width in pixels.
     :param render_height: frame height in pixels.
     :param n_substeps: physics steps (of ``PHYSICS_DT``) per control step.
+    :param dynamics: how the arms respond to the policy's commands (:mod:`vafn_gym.dynamics`): ``None`` (nominal), a
+        :class:`Dynamics` or a dict of its fields (fixed), or "train" / "test" to draw a variant of that split of
+        :data:`~vafn_gym.dynamics.DYNAMICS_VARIANTS` at every reset (``info["dynamics"]`` names it). Only the policy's
+        velocity commands are affected, not the env's own return-home motion of held arms.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": int(round(1.0 / (PHYSICS_DT * N_SUBSTEPS)))}
@@ -134,8 +139,16 @@ class MultiArmEnv(gym.Env):
         render_width: int = 480,
         render_height: int = 360,
         n_substeps: int = N_SUBSTEPS,
+        dynamics: Any = None,
     ) -> None:
         self.robot = get_robot(robot)
+        if isinstance(dynamics, str):
+            self.dynamics_sampler: DynamicsSampler | None = DynamicsSampler(dynamics)
+            self.dynamics = self.dynamics_sampler.variants[0]
+        else:
+            self.dynamics_sampler, self.dynamics = None, Dynamics.coerce(dynamics)
+        self._fixed_dynamics: Dynamics | None = None
+        self._pending_actions: list[np.ndarray] = []
         if layout is None:
             layout = ArmLayout(n_arms=check_int("n_arms", n_arms, 2, MAX_ARMS), base_radius=self.robot.base_radius)
         elif not isinstance(layout, ArmLayout):
@@ -188,6 +201,8 @@ class MultiArmEnv(gym.Env):
             self.sim.step()
         for arm in self.arms.values():
             arm.settle()
+        self._base_masses = {i: self.sim.link_mass(arm.body, self.robot.ee_link) for i, arm in self.arms.items()}
+        self._apply_dynamics(self.dynamics)
         homes = {arm_id: arm.home for arm_id, arm in self.arms.items()}
         self.task = InstructionTask(
             layout, self.targets, self.inactive_arms, reward_type, reward, homes,
@@ -206,7 +221,7 @@ class MultiArmEnv(gym.Env):
             frame=self.frame, inactive_arms=self.inactive_arms, waiting_goal=self.waiting_goal, reward_type=reward_type,
             reward_kwargs=reward.as_dict(),
             terminate_on_collision=self.terminate_on_collision, safety_margin=self.safety_margin, n_substeps=n_substeps,
-            split_seed=split_seed,
+            split_seed=split_seed, dynamics=dynamics if isinstance(dynamics, str) else self.dynamics,
         )
 
     @property
@@ -295,6 +310,21 @@ class MultiArmEnv(gym.Env):
         """Use ``task`` (anything :meth:`Instruction.coerce` accepts; ``None`` = sample) from the next reset on."""
         self._task = None if task is None else self._coerce(task)
 
+    def set_dynamics(self, dynamics: Any) -> None:
+        """Change how the arms respond *now* (mid-episode too) and keep it over resets; ``None`` returns to the env's
+        own ``dynamics`` setting (nominal, fixed or a split drawn at every reset)."""
+        if dynamics is None:
+            self._fixed_dynamics = None
+            return
+        self._fixed_dynamics = Dynamics.coerce(dynamics)
+        self._apply_dynamics(self._fixed_dynamics)
+
+    def _apply_dynamics(self, dynamics: Dynamics) -> None:
+        self.dynamics = dynamics
+        for arm_id, arm in self.arms.items():
+            self.sim.set_link_mass(arm.body, self.robot.ee_link, self._base_masses[arm_id] + dynamics.payload)
+        self._pending_actions = self._pending_actions[-dynamics.action_delay:] if dynamics.action_delay else []
+
     def get_task(self) -> Instruction:
         """The instruction of the current episode, targets resolved (pass it to :meth:`set_task` to replay it)."""
         return self.task.instruction
@@ -313,6 +343,13 @@ class MultiArmEnv(gym.Env):
         super().reset(seed=seed)
         if seed is not None:
             self.sampler.seed(int(self.np_random.integers(2**63)))
+            if self.dynamics_sampler is not None:
+                self.dynamics_sampler.seed(int(self.np_random.integers(2**63)))
+        if self._fixed_dynamics is not None:
+            self._apply_dynamics(self._fixed_dynamics)
+        elif self.dynamics_sampler is not None:
+            self._apply_dynamics(self.dynamics_sampler.sample())
+        self._pending_actions = []
         for arm in self.arms.values():
             arm.reset()
         self._readings = None
@@ -370,8 +407,19 @@ class MultiArmEnv(gym.Env):
             for arm in self.layout.arm_ids if arm != active
         )
 
+    def _delayed(self, action: np.ndarray) -> np.ndarray:
+        """The action that takes effect now: the one sent ``action_delay`` steps ago (zeros before the episode)."""
+        delay = self.dynamics.action_delay
+        if delay == 0:
+            return action
+        self._pending_actions.append(action)
+        if len(self._pending_actions) <= delay:
+            return np.zeros_like(action)
+        return self._pending_actions.pop(0)
+
     def _apply_action(self, action: np.ndarray, positions: Mapping[int, np.ndarray]) -> None:
         dt, active = self.sim.dt, self.task.active_arm
+        action = self._delayed(action)
         hold_mode = self.inactive_arms == "hold"
         self.gated = hold_mode and active is not None and not self._clear_of_shared_region(positions, active)
         for arm_id, arm in self.arms.items():
@@ -383,7 +431,7 @@ class MultiArmEnv(gym.Env):
                 velocity = action[self.layout.action_slice(arm_id)] * V_MAX
                 if self.frame == "base":
                     velocity = self.layout.base_to_world_vector(arm_id, velocity)
-                arm.command_velocity(velocity, dt, positions[arm_id])
+                arm.command_velocity(self.dynamics.velocity(velocity), dt, positions[arm_id])
         self.sim.step()
 
     def _arm_contact(self) -> bool:
@@ -420,6 +468,7 @@ class MultiArmEnv(gym.Env):
         info = self.task.info(distances, contact)
         active = self.task.active_arm
         info["gated"] = self.gated
+        info["dynamics"] = self.dynamics
         info["ignored_arms"] = (
             [arm for arm in self.layout.arm_ids if arm != active or self.gated] if self.inactive_arms == "hold" else []
         )

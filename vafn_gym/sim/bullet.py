@@ -152,6 +152,14 @@ class BulletSim:
         infos = [self._p.getJointInfo(body, j, physicsClientId=self.client) for j in joints]
         return np.array([i[8] for i in infos]), np.array([i[9] for i in infos])
 
+    def link_mass(self, body: int, link: int) -> float:
+        """Mass (kg) of a link."""
+        return float(self._p.getDynamicsInfo(body, link, physicsClientId=self.client)[0])
+
+    def set_link_mass(self, body: int, link: int, mass: float) -> None:
+        """Change the mass (kg) of a link."""
+        self._p.changeDynamics(body, link, mass=float(mass), physicsClientId=self.client)
+
     def contact_count(self, body_a: int, body_b: int) -> int:
         """Number of contact points between two bodies after the last step."""
         return len(self._p.getContactPoints(body_a, body_b, physicsClientId=self.client))

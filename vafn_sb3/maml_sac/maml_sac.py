@@ -47,7 +47,6 @@ from stable_baselines3.sac.policies import CnnPolicy, MlpPolicy, MultiInputPolic
 from torch.func import vmap
 
 from vafn_gym.instructions import Instruction
-from vafn_gym.tasks import TaskSampler
 from vafn_sb3.common.adaptation import SupportSet, collect_support, is_task_list, seeded_torch_stream
 from vafn_sb3.common.save import AtomicSaveMixin
 from vafn_sb3.maml_sac.buffers import TaskRolloutBuffer
@@ -263,11 +262,12 @@ class MAMLSAC(AtomicSaveMixin, LeanSACMixin, SAC):
             return self.log_ent_coef.detach().exp()
         return self.ent_coef_tensor
 
-    def _task_pool(self) -> list[Instruction]:
+    def _task_pool(self) -> list[Any]:
         if self.train_tasks is None:
+            # An instruction TaskSampler, or any task source with fixed_set (vafn_gym.wrappers.DynamicsTasks' variants).
             sampler = self.env.get_attr("sampler", indices=0)[0]
-            if not isinstance(sampler, TaskSampler):
-                raise TypeError("the env has no TaskSampler 'sampler'; pass train_tasks= to MAMLSAC")
+            if not callable(getattr(sampler, "fixed_set", None)):
+                raise TypeError("the env's 'sampler' has no fixed_set(n, seed); pass train_tasks= to MAMLSAC")
             self.train_tasks = sampler.fixed_set(self.n_train_tasks, seed=self.task_seed)
         return self.train_tasks
 

@@ -1,0 +1,155 @@
+"""Dynamics variants: the Dynamics spec, the fixed train/test family, the env's dynamics kwarg and DynamicsTasks."""
+
+from __future__ import annotations
+
+import csv
+import json
+import runpy
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import vafn_gym  # noqa: F401
+from vafn_gym import Dynamics, DynamicsTasks, MultiArmEnv
+from vafn_gym.dynamics import DYNAMICS_FAMILY, DYNAMICS_VARIANTS, DYNAMICS_VERSION, NOMINAL
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_bad_fields_are_refused_by_name():
+    with pytest.raises(ValueError, match="action_gain"):
+        Dynamics(action_gain=-1.0)
+    with pytest.raises(TypeError, match="action_delay"):
+        Dynamics(action_delay=1.5)
+    with pytest.raises(ValueError, match="action_rotation"):
+        Dynamics(action_rotation=200.0)
+    with pytest.raises(ValueError, match="speed_limit"):
+        Dynamics(speed_limit=0.0)
+    with pytest.raises(ValueError, match=r"unknown dynamics field\(s\) \['gain'\]"):
+        Dynamics.coerce({"gain": 2.0})
+    with pytest.raises(TypeError, match="dynamics must be"):
+        Dynamics.coerce(3)
+    with pytest.raises(ValueError, match="dynamics split"):
+        MultiArmEnv(dynamics="validation")
+
+
+def test_velocity_is_rotated_scaled_and_capped():
+    assert np.allclose(Dynamics(action_rotation=90.0).velocity(np.array([1.0, 0.0, 0.5])), [0.0, 1.0, 0.5])
+    assert np.allclose(Dynamics(action_gain=2.0).velocity(np.array([0.1, -0.2, 0.3])), [0.2, -0.4, 0.6])
+    capped = Dynamics(action_gain=2.0, speed_limit=0.3).velocity(np.array([0.1, -0.2, 0.3]))
+    assert np.allclose(capped, [0.2, -0.3, 0.3])
+    assert np.array_equal(NOMINAL.velocity(np.array([0.1, 0.2, 0.3])), [0.1, 0.2, 0.3])
+    assert Dynamics.coerce(NOMINAL.as_dict()) == NOMINAL and Dynamics.coerce(None) == NOMINAL
+
+
+def test_family_is_fixed_versioned_and_its_splits_disjoint():
+    assert DYNAMICS_VERSION == "dynamics-v1"
+    train, test = DYNAMICS_VARIANTS["train"], DYNAMICS_VARIANTS["test"]
+    assert len(train) == 40 and len(test) == 12 and not set(train) & set(test)
+    assert tuple(DYNAMICS_FAMILY.fixed_set(12, seed=1)) == test  # a pure function of the seed
+    # the lists span the family's ranges, not one corner of it
+    assert min(v.action_gain for v in train) < 0.6 and max(v.action_gain for v in train) > 2.0
+    assert {v.action_delay for v in train} == {0, 1, 2, 3}
+    assert min(v.action_rotation for v in train) < -100 and max(v.action_rotation for v in train) > 100
+
+
+def _first_move(env: MultiArmEnv, action: np.ndarray, steps: int) -> list[float]:
+    """How far the active arm's commanded point moved at each of ``steps`` steps of ``action``."""
+    moves = []
+    for _ in range(steps):
+        arm = env.arms[env.active_arm]
+        before = arm.commanded.copy()
+        env.step(action)
+        moves.append(float(np.linalg.norm(arm.commanded - before)))
+    return moves
+
+
+def test_delay_holds_the_first_commands_back():
+    env = MultiArmEnv(instruction=[1], dynamics={"action_delay": 2})
+    env.reset(seed=0)
+    action = np.zeros(9, dtype=np.float32)
+    action[0:3] = [0.0, 0.0, 1.0]
+    moves = _first_move(env, action, 4)
+    assert moves[0] == moves[1] == 0.0 and moves[2] > 0.0 and moves[3] > 0.0
+    env.reset(seed=0)  # a reset forgets the commands of the last episode
+    assert _first_move(env, np.zeros(9, dtype=np.float32), 3) == [0.0, 0.0, 0.0]
+    env.close()
+
+
+def test_rotation_turns_the_arm_s_motion():
+    moved = {}
+    for rotation in (0.0, 90.0):
+        env = MultiArmEnv(instruction=[1], dynamics={"action_rotation": rotation})
+        env.reset(seed=0)
+        arm = env.arms[1]
+        start = arm.commanded.copy()
+        action = np.zeros(9, dtype=np.float32)
+        action[0] = 0.5  # +x only
+        for _ in range(3):
+            env.step(action)
+        moved[rotation] = arm.commanded - start
+        env.close()
+    assert abs(moved[0.0][0]) > 0.01 and abs(moved[0.0][1]) < 1e-6
+    assert abs(moved[90.0][1]) > 0.01 and abs(moved[90.0][0]) < 1e-6
+
+
+def test_a_split_draws_a_variant_per_reset_reproducibly_and_set_dynamics_overrides_it():
+    env = gym.make("VAFN/ThreeArmReach-v1", dynamics="train")
+    base = env.unwrapped
+    drawn = []
+    for seed in (0, 0, 1):
+        _, info = env.reset(seed=seed)
+        drawn.append(info["dynamics"])
+    assert drawn[0] == drawn[1] and all(v in DYNAMICS_VARIANTS["train"] for v in drawn)
+    seen = {env.reset()[1]["dynamics"] for _ in range(10)}
+    assert len(seen) > 1
+    mass = base.sim.link_mass(base.arms[1].body, base.robot.ee_link)
+    base.set_dynamics({"payload": 1.5})  # takes effect at once, and stays over resets
+    assert base.sim.link_mass(base.arms[1].body, base.robot.ee_link) == pytest.approx(base._base_masses[1] + 1.5)
+    assert env.reset()[1]["dynamics"] == Dynamics(payload=1.5)
+    base.set_dynamics(None)  # back to drawing train variants
+    assert env.reset()[1]["dynamics"] in DYNAMICS_VARIANTS["train"]
+    assert np.isfinite(mass)
+    env.close()
+
+
+def test_maml_sac_meta_trains_over_variants_through_dynamics_tasks():
+    from vafn_sb3 import MAMLSAC
+
+    env = DynamicsTasks(gym.make("VAFN/ThreeArmReach-v1", max_length=1, dynamics="train"))
+    assert env.sampler.fixed_set(3) == list(DYNAMICS_VARIANTS["train"][:3])
+    model = MAMLSAC("SharedAgentPolicy", env, warmup_steps=20, learning_starts=10, batch_size=8, n_support=10,
+                    n_query=10, meta_batch_size=2, outer_steps=1, n_train_tasks=4, policy_kwargs={"net_arch": [8]},
+                    seed=0)
+    model.learn(80)
+    assert model.train_tasks == list(DYNAMICS_VARIANTS["train"][:4]) and model.meta_iterations >= 1
+    assert env.unwrapped._fixed_dynamics is None  # learn() hands the env back to its own setting
+    with pytest.raises(TypeError, match="needs a MultiArmEnv"):
+        DynamicsTasks(gym.make("CartPole-v1"))
+    env.close()
+
+
+def test_adaptation_study_runs_every_task_under_every_held_out_variant(tmp_path):
+    from vafn_sb3 import MTSAC, save_weights
+
+    env = gym.make("VAFN/ThreeArmReach-v1", max_length=1)
+    model = MTSAC("SharedAgentPolicy", env, learning_starts=10, batch_size=8, policy_kwargs={"net_arch": [8]}, seed=0)
+    model.learn(20)
+    save_weights(model, tmp_path / "mtsac_seed0.zip")
+    env.close()
+    study = runpy.run_path(str(ROOT / "benchmarks" / "adaptation.py"), run_name="adaptation_study")
+    out = tmp_path / "out"
+    study["main"](["--env", "VAFN/ThreeArmReach-v1", "--dynamics", "test", "--max-length", "1", "--n-tasks", "1",
+                   "--k", "0", "1", "--n-support", "8", "--method", "mtsac", "mtsac", str(tmp_path / "mtsac_seed*.zip"),
+                   "--out", str(out)])
+    with (out / "adaptation.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    labels = {v.label for v in DYNAMICS_VARIANTS["test"]}
+    assert {r["variant"] for r in rows if r["method"] == "mtsac"} == labels
+    assert sum(r["method"] == "mtsac" for r in rows) == len(labels) * 2  # every variant at K = 0 and 1
+    meta = json.loads((out / "adaptation.json").read_text())
+    assert meta["dynamics"]["version"] == DYNAMICS_VERSION and len(meta["dynamics"]["variants"]) == len(labels)
+    with (out / "adaptation_by_variant.csv").open() as handle:
+        assert {(r["method"], r["k"]) for r in csv.DictReader(handle)} >= {("mtsac", "0"), ("mtsac", "1")}
