@@ -1,0 +1,190 @@
+"""Adapting to changed dynamics by identification: fit how the active arm's motion turns from its commands, undo it.
+
+A policy trained on the nominal robot commands end-effector velocities. On a variant whose commands are turned
+(:class:`vafn_gym.Dynamics` ``action_rotation``), the arm's horizontal motion points ``rotation`` degrees away from the
+command (after a lag of a few steps). :func:`fit_response` estimates that angle from (command, motion) pairs;
+:class:`DynamicsCompensation` fits it on a support set (``adapt``) or on the episode's own last steps (``online=True``)
+and turns every command by ``-rotation``, so the unchanged policy moves as it learned to. Gains, delays, speed limits
+and payloads are left alone: they did not stop the nominal policy, and dividing by a measured gain made delayed arms
+oscillate (docs/results.md, "Adapting to changed dynamics").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from vafn_gym.constants import CONTROL_DT, PHASE_EXECUTING, PHASE_INDEX, POS_SLICE, V_MAX
+from vafn_sb3.common.adaptation import SupportSet, collect_support
+
+__all__ = ["DynamicsCompensation", "ResponseFit", "fit_response", "response_pairs"]
+
+#: Lags (control steps between a command and the motion it causes) tried by the fit: the arm's own tracking lag plus
+#: the variant family's delays.
+MAX_LAG = 5
+#: Pairs with a commanded horizontal step shorter than this (metres) say nothing about direction and are skipped.
+MIN_COMMAND = 1e-3
+#: Fewest usable pairs for a fit; with fewer the response stays the identity.
+MIN_PAIRS = 8
+#: Smallest agreement of the pairs' turning angles (mean resultant length, 1 = all turn alike) for a usable fit.
+MIN_CONSISTENCY = 0.5
+
+
+@dataclass(frozen=True)
+class ResponseFit:
+    """The horizontal motion turns ``rotation`` degrees (counter-clockwise about z) from the command ``lag`` steps
+    earlier.
+
+    :param rotation: the turn (degrees).
+    :param lag: control steps between a command and its motion.
+    :param consistency: how alike the pairs turn (mean resultant length of their angles, weighted by length).
+    :param n_pairs: pairs it was fitted on.
+    """
+
+    rotation: float = 0.0
+    lag: int = 0
+    consistency: float = 0.0
+    n_pairs: int = 0
+
+    @property
+    def usable(self) -> bool:
+        """Whether enough pairs agree on the turn for it to be undone."""
+        return self.n_pairs >= MIN_PAIRS and self.consistency >= MIN_CONSISTENCY
+
+    def correct(self, action: np.ndarray, n_arms: int) -> np.ndarray:
+        """``action`` (``(..., 3 * n_arms)``) turned by ``-rotation`` per arm (unchanged when the fit is not
+        usable)."""
+        if not self.usable:
+            return action
+        blocks = np.asarray(action, dtype=np.float64).reshape(*np.shape(action)[:-1], n_arms, 3)
+        angle = -np.radians(self.rotation)
+        cos, sin = np.cos(angle), np.sin(angle)
+        x, y, z = blocks[..., 0], blocks[..., 1], blocks[..., 2]
+        turned = np.stack([cos * x - sin * y, sin * x + cos * y, z], axis=-1)
+        return np.clip(turned, -1.0, 1.0).reshape(np.shape(action)).astype(np.float32)
+
+
+def response_pairs(
+    observations: np.ndarray, actions: np.ndarray, next_observations: np.ndarray, episode_ends: np.ndarray,
+    n_arms: int, lag: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Horizontal ``(command, motion)`` pairs of the executing arm, the command ``lag`` steps before the motion.
+
+    A pair is kept where one arm executes (phase flag 1) in both readings and the ``lag`` earlier steps belong to the
+    same episode; command = action · V_MAX · CONTROL_DT (metres), motion = the measured displacement.
+    """
+    n = len(actions)
+    blocks = observations.reshape(n, n_arms, -1)
+    next_blocks = next_observations.reshape(n, n_arms, -1)
+    commands, motions = [], []
+    for t in range(lag, n):
+        if episode_ends[t - lag:t].any():
+            continue
+        executing = np.flatnonzero((np.round(blocks[t, :, PHASE_INDEX]) == PHASE_EXECUTING)
+                                   & (np.round(next_blocks[t, :, PHASE_INDEX]) == PHASE_EXECUTING))
+        if len(executing) != 1:
+            continue
+        arm = int(executing[0])
+        command = actions[t - lag, 3 * arm:3 * arm + 2] * V_MAX * CONTROL_DT
+        if np.linalg.norm(command) < MIN_COMMAND:
+            continue
+        commands.append(command)
+        motions.append((next_blocks[t, arm, POS_SLICE] - blocks[t, arm, POS_SLICE])[:2])
+    return np.asarray(commands).reshape(-1, 2), np.asarray(motions).reshape(-1, 2)
+
+
+def fit_response(
+    observations: np.ndarray, actions: np.ndarray, next_observations: np.ndarray, episode_ends: np.ndarray,
+    n_arms: int, max_lag: int = MAX_LAG,
+) -> ResponseFit:
+    """The :class:`ResponseFit` of the most consistent lag in ``0..max_lag`` (the identity if nothing fits).
+
+    With u, m the command and the motion as complex numbers, the turn is ``arg Σ conj(u) m`` (the least-squares angle)
+    and the consistency ``|Σ conj(u) m| / Σ |u| |m|``.
+    """
+    best = ResponseFit()
+    for lag in range(max_lag + 1):
+        commands, motions = response_pairs(observations, actions, next_observations, episode_ends, n_arms, lag)
+        if len(commands) < MIN_PAIRS:
+            continue
+        products = np.conj(commands[:, 0] + 1j * commands[:, 1]) * (motions[:, 0] + 1j * motions[:, 1])
+        weight = float(np.sum(np.abs(products)))
+        consistency = float(abs(products.sum())) / weight if weight > 0 else 0.0
+        if consistency > best.consistency:
+            best = ResponseFit(float(np.degrees(np.angle(products.sum()))), lag, consistency, len(commands))
+    return best
+
+
+def fit_support(support: SupportSet, n_arms: int) -> ResponseFit:
+    """:func:`fit_response` on a support set."""
+    return fit_response(support.observations, support.actions, support.next_observations, support.episode_ends,
+                        n_arms)
+
+
+class DynamicsCompensation:
+    """A nominal policy plus a fitted response that it inverts: adapts to turned or scaled commands without training.
+
+    ``adapt`` collects a support set with the wrapped model's stochastic policy (the same routine and budget as every
+    other method) and fits the response on it; ``k`` is not used (no gradient steps). With ``online=True`` the policy
+    refits after every step from the episode's own (command, motion) pairs instead, and needs no support set.
+
+    :param model: a policy trained on the nominal dynamics (SB3 ``predict``), acting in the world frame.
+    :param n_arms: arms of the env.
+    :param response: a fitted response to invert (identity by default).
+    :param online: refit from the running episode's steps (call :meth:`reset` at every episode start).
+    :param window: online mode: the last this many steps are fitted, so a change of robot mid-episode is followed.
+    """
+
+    def __init__(
+        self, model: Any, n_arms: int, response: ResponseFit | None = None, online: bool = False, window: int = 40
+    ) -> None:
+        self.model = model
+        self.window = int(window)
+        self.n_arms = int(n_arms)
+        self.response = response or ResponseFit()
+        self.online = online
+        self.support: SupportSet | None = None
+        self._history: dict[str, list[np.ndarray]] = {"obs": [], "actions": []}
+
+    def reset(self) -> None:
+        """Forget the running episode (online mode): the response is refitted from the next steps."""
+        self._history = {"obs": [], "actions": []}
+        if self.online:
+            self.response = ResponseFit()
+
+    def predict(
+        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, Any]:
+        """The wrapped policy's action for ``observation``, corrected by the response (refitted first if online)."""
+        if self.online and np.ndim(observation) == 1:
+            self._refit(np.asarray(observation, dtype=np.float32))
+        action, state = self.model.predict(observation, state, episode_start, deterministic)
+        sent = self.response.correct(action, self.n_arms)
+        if self.online and np.ndim(observation) == 1:
+            self._history["actions"].append(np.asarray(sent, dtype=np.float32))
+        return sent, state
+
+    def _refit(self, observation: np.ndarray) -> None:
+        history = self._history
+        history["obs"].append(observation)
+        del history["obs"][:-self.window - 1], history["actions"][:-self.window]
+        if len(history["actions"]) < MIN_PAIRS:
+            return
+        # Fitted on the commands actually sent (after the current correction): the fit is the arm's true response.
+        fit = fit_response(np.stack(history["obs"][:-1]), np.stack(history["actions"]), np.stack(history["obs"][1:]),
+                           np.zeros(len(history["actions"])), self.n_arms)
+        if fit.usable:
+            self.response = fit
+
+    def adapt(
+        self, env: gym.Env, task: Any = None, n_support: int = 200, k: int = 0, seed: int | None = None
+    ) -> DynamicsCompensation:
+        """Collect ``n_support`` stochastic steps of the wrapped model on ``env`` and fit the response to them."""
+        support = collect_support(self.model, env, task, n_support, seed)
+        adapted = DynamicsCompensation(self.model, self.n_arms, fit_support(support, self.n_arms))
+        adapted.support = support
+        return adapted
