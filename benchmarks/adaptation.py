@@ -85,15 +85,19 @@ from vafn_sb3.inference import (  # noqa: E402
     inference_policy_for_env,
     load_estimator,
 )
+from vafn_sb3.inference.dynamics import DynamicsCompensation  # noqa: E402
 from vafn_sb3.loading import add_trust_flag, load_model, load_model_or_exit, training_seed  # noqa: E402
 from zoo.registry import register_algorithms  # noqa: E402
 from zoo.study import support_budget  # noqa: E402
 
 DEFAULT_K = [0, 1, 2, 5, 10, 20, 50]
 METRICS = tuple(ADAPTATION_METRICS)
-#: How a method may be evaluated instead of adapting over K (all K = 0 only): as it is, or a goal-observing model run
-#: through TargetInferencePolicy with one of its inference settings ("infer-<setting>").
-MODES = ("zero-shot", *(f"infer-{inference}" for inference in INFERENCE_MODES))
+#: How a method may be evaluated instead of by its own adaptation: as it is (K = 0), a goal-observing model run through
+#: TargetInferencePolicy with one of its inference settings ("infer-<setting>"), or a nominal model whose commands are
+#: turned back by the response identified on the support set ("identify", every K: the fit takes no gradient steps) or
+#: on the episode's own last steps ("identify-online", K = 0).
+COMPENSATION_MODES = {"identify": False, "identify-online": True}
+MODES = ("zero-shot", *(f"infer-{inference}" for inference in INFERENCE_MODES), *COMPENSATION_MODES)
 #: Inference settings that read an estimator file, and the flag (its ``args`` attribute) that names the file.
 ESTIMATOR_FLAGS = {"learned": "target_estimator", "gradient": "gradient_estimator"}
 #: The reference policies every study includes (K = 0, no training).
@@ -111,6 +115,8 @@ class Method:
     zero_shot: bool = False
     #: None, or the inference setting of TargetInferencePolicy that runs this goal-observing model.
     target_inference: str | None = None
+    #: None, or the COMPENSATION_MODES entry that wraps the model in a DynamicsCompensation.
+    compensation: str | None = None
 
     @classmethod
     def parse(cls, fields: list[str]) -> Method:
@@ -129,9 +135,10 @@ class Method:
         paths = sorted(Path(p) for p in glob.glob(pattern))
         if not paths:
             raise ValueError(f"{label}: no model matches {pattern!r}")
-        # infer-gradient adapts over K (its gradient steps); every other mode is evaluated at K = 0 only
-        return cls(label, algo, paths, env_kwargs, zero_shot=mode not in (None, "infer-gradient"),
-                   target_inference=None if mode in (None, "zero-shot") else mode.removeprefix("infer-"))
+        # infer-gradient and identify adapt over K; every other mode is evaluated at K = 0 only
+        inference = mode.removeprefix("infer-") if mode is not None and mode.startswith("infer-") else None
+        return cls(label, algo, paths, env_kwargs, zero_shot=mode not in (None, "infer-gradient", "identify"),
+                   target_inference=inference, compensation=mode if mode in COMPENSATION_MODES else None)
 
 
 def seed_of(path: Path) -> int:
@@ -151,9 +158,10 @@ def earlier_seed_models(methods: list[Method], previous: list[dict[str, Any]]) -
         if record is None:
             continue
         now = {"algo": method.algo, "env_kwargs": method.env_kwargs, "zero_shot": method.zero_shot,
-               "target_inference": method.target_inference}
+               "target_inference": method.target_inference, "compensation": method.compensation}
         before = {key: record.get(key, default) for key, default in
-                  (("algo", None), ("env_kwargs", {}), ("zero_shot", False), ("target_inference", None))}
+                  (("algo", None), ("env_kwargs", {}), ("zero_shot", False), ("target_inference", None),
+                   ("compensation", None))}
         if now != before:
             raise SystemExit(f"--add-seeds: {method.label} was evaluated with {before}, now with {now}")
         seeds = {seed_of(path) for path in method.paths}
@@ -200,6 +208,10 @@ def evaluate_model(method: Method, path: Path, args: argparse.Namespace, tasks: 
         # K = 0 is the unadapted policy; evaluate_adaptation's adapt(k=K) sets the gradient steps
         model = inference_policy_for_env(model, env, method.target_inference, estimator, steps=0,
                                          refine_steps=args.refine_steps, refine_solver=args.refine_solver)
+        env.close()
+    if method.compensation is not None:
+        env = gym.make(args.env, **env_kwargs)
+        model = DynamicsCompensation(model, env.unwrapped.n_arms, online=COMPENSATION_MODES[method.compensation])
         env.close()
     rows = adaptation_rows(model, args, tasks, env_kwargs, [0] if method.zero_shot else args.k, args.support)
     return [{"method": method.label, "seed": seed_of(path), **row} for row in rows]
@@ -465,7 +477,7 @@ def main(argv: list[str] | None = None) -> None:
             "methods": method_records + [{"label": m.label, "algo": m.algo,
                                           "models": earlier_models.get(m.label, []) + [str(p) for p in m.paths],
                                           "env_kwargs": m.env_kwargs, "zero_shot": m.zero_shot,
-                                          "target_inference": m.target_inference,
+                                          "target_inference": m.target_inference, "compensation": m.compensation,
                                           **estimator_record(m, args)} for m in methods],
             "eval_wall_s": round(time.perf_counter() - start, 1), "summary": summary}
     (args.out / "adaptation.json").write_text(json.dumps(meta, indent=2))

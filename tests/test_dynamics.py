@@ -143,13 +143,89 @@ def test_adaptation_study_runs_every_task_under_every_held_out_variant(tmp_path)
     out = tmp_path / "out"
     study["main"](["--env", "VAFN/ThreeArmReach-v1", "--dynamics", "test", "--max-length", "1", "--n-tasks", "1",
                    "--k", "0", "1", "--n-support", "8", "--method", "mtsac", "mtsac", str(tmp_path / "mtsac_seed*.zip"),
+                   "--method", "identify", "mtsac", str(tmp_path / "mtsac_seed*.zip"), "identify",
+                   "--method", "online", "mtsac", str(tmp_path / "mtsac_seed*.zip"), "identify-online",
                    "--out", str(out)])
     with (out / "adaptation.csv").open() as handle:
         rows = list(csv.DictReader(handle))
     labels = {v.label for v in DYNAMICS_VARIANTS["test"]}
     assert {r["variant"] for r in rows if r["method"] == "mtsac"} == labels
-    assert sum(r["method"] == "mtsac" for r in rows) == len(labels) * 2  # every variant at K = 0 and 1
+    counts = {m: sum(r["method"] == m for r in rows) for m in ("mtsac", "identify", "online")}
+    assert counts == {"mtsac": 2 * len(labels), "identify": 2 * len(labels), "online": len(labels)}
     meta = json.loads((out / "adaptation.json").read_text())
+    assert [m["compensation"] for m in meta["methods"]] == [None, "identify", "identify-online"]
     assert meta["dynamics"]["version"] == DYNAMICS_VERSION and len(meta["dynamics"]["variants"]) == len(labels)
     with (out / "adaptation_by_variant.csv").open() as handle:
         assert {(r["method"], r["k"]) for r in csv.DictReader(handle)} >= {("mtsac", "0"), ("mtsac", "1")}
+
+
+def _pairs(rotation: float, n: int, noise: float, seed: int = 0):
+    """Observations of arm 1 executing whose moves are its commands turned by ``rotation`` (3 arms, 5 numbers each)."""
+    from vafn_gym.constants import CONTROL_DT, V_MAX
+
+    rng = np.random.default_rng(seed)
+    actions = rng.uniform(-1, 1, size=(n, 9)).astype(np.float32)
+    observations = np.zeros((n + 1, 15), dtype=np.float32)
+    observations[:, 4] = 1.0  # arm 1 executes, the others wait
+    angle = np.radians(rotation)
+    for t in range(n):
+        x, y = actions[t, :2] * V_MAX * CONTROL_DT
+        move = np.array([np.cos(angle) * x - np.sin(angle) * y, np.sin(angle) * x + np.cos(angle) * y])
+        observations[t + 1, :2] = observations[t, :2] + move + rng.normal(0, noise, 2)
+    return observations[:-1], actions, observations[1:], np.zeros(n)
+
+
+def test_fit_response_recovers_a_turn_and_refuses_noise():
+    from vafn_sb3.inference import fit_response
+
+    fit = fit_response(*_pairs(120.0, 50, noise=0.001), n_arms=3)
+    assert fit.rotation == pytest.approx(120.0, abs=3.0) and fit.lag == 0 and fit.usable
+    action = np.array([1.0, 0.0, 0.2] * 3, dtype=np.float32)
+    corrected = fit.correct(action, 3)  # turned back: the arm then moves along +x
+    assert corrected[0] == pytest.approx(np.cos(np.radians(-fit.rotation)), abs=1e-5) and corrected[2] == 0.2
+    noise = fit_response(*_pairs(0.0, 50, noise=0.5), n_arms=3)  # the moves have nothing to do with the commands
+    assert not noise.usable and np.array_equal(noise.correct(action, 3), action)
+    assert not fit_response(*_pairs(0.0, 5, noise=0.0), n_arms=3).usable  # too few pairs
+
+
+@pytest.mark.parametrize("online", [False, True])
+def test_compensation_lets_a_nominal_controller_reach_on_a_turned_robot(online):
+    from vafn_gym import ScriptedController, run_episode
+    from vafn_sb3.inference import DynamicsCompensation
+
+    env = gym.make("VAFN/ThreeArmReach-v1", instruction=[1, 2], dynamics={"action_rotation": 130.0})
+    scripted = ScriptedController.for_env(env)
+    assert run_episode(scripted, env, seed=0)["success"] == 0.0  # turned 130°, the nominal controller fails
+    policy = DynamicsCompensation(scripted, 3, online=online)
+    if not online:
+        policy = policy.adapt(env, n_support=150, seed=0)
+        assert policy.response.rotation == pytest.approx(130.0, abs=20.0) and len(policy.support) == 150
+    row = run_episode(policy, env, seed=0)
+    assert row["success"] == 1.0 and row["collision"] == 0.0
+    env.close()
+
+
+def test_online_controller_adapts_when_a_new_robot_is_announced():
+    from vafn_gym import ScriptedController
+    from vafn_sb3 import OnlineController
+    from vafn_sb3.inference import DynamicsCompensation
+
+    stream = gym.make("VAFN/ThreeArmStream-v1", arrivals={0: ["1,2", "3"]}, auto_dequeue=False, horizon=1000)
+    controller = OnlineController(DynamicsCompensation(ScriptedController.for_env(stream), 3), stream, k=1,
+                                  n_support=25)
+    for _ in range(10):
+        controller.step()
+    with pytest.raises(ValueError, match="action_rotation"):
+        controller.announce_dynamics({"action_rotation": 400.0})
+    assert controller.dynamics_events == []  # refused before anything changed
+    turned = Dynamics(action_rotation=-120.0)
+    stream.unwrapped.set_dynamics(turned)
+    controller.announce_dynamics(turned)
+    assert controller.twin.dynamics == turned
+    while len(controller.log) < 2 or controller.log[-1].outcome == "running":
+        controller.step()
+    assert [entry.success for entry in controller.log] == [True, True]
+    event = controller.dynamics_events[0]
+    assert event["sequence"] == controller.log[0].sequence and 0 < event["first_action_s"] < 1.0
+    controller.close()
+    stream.close()

@@ -12,6 +12,12 @@ Loop, one control step at a time:
 3. **execute** the adapted policy (deterministic) until the stream reports the instruction completed or timed out;
 4. **reset to θ**: drop the adapted parameters (``adapt`` never modifies the model) and continue.
 
+When the robot changes mid-stream (another robot, a payload, a re-mounted base),
+:meth:`OnlineController.announce_dynamics` tells the controller: its twin takes the new dynamics and a running
+instruction is adapted again at once (a row in :attr:`OnlineController.dynamics_events` times it). A model that
+identifies the change from the arm's own motion (:class:`vafn_sb3.inference.DynamicsCompensation` with
+``online=True``) needs no announcement.
+
 Instructions may be enqueued from any thread (the queue is thread-safe). Every instruction gets an
 :class:`InstructionLog` row (arrival, wait, adaptation and first-action times, completion step, success, collisions);
 one that could not be started is in :attr:`OnlineController.rejected`, one the queue evicted (``drop_oldest``) in
@@ -29,6 +35,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from vafn_gym.dynamics import Dynamics
 from vafn_gym.envs import MultiArmEnv, MultiArmStreamEnv
 from vafn_gym.queue import QueuedInstruction
 
@@ -127,6 +134,9 @@ class OnlineController:
         self._policy: Any = None
         self._current: InstructionLog | None = None
         self._dequeue_cpu = 0.0
+        #: One row per :meth:`announce_dynamics`: stream step, the dynamics, the instruction re-adapted (or -1),
+        #: adaptation wall time and announcement -> first action sent after it (``first_action_s``; NaN until then).
+        self.dynamics_events: list[dict[str, Any]] = []
 
     @property
     def dropped(self) -> list[QueuedInstruction]:
@@ -141,6 +151,35 @@ class OnlineController:
         self._collected = (len(self.stream.errors), len(self.stream.rejected))
 
     # --- Algorithm 1 ---
+    def announce_dynamics(self, dynamics: Any) -> None:
+        """The robot now follows ``dynamics`` (a :class:`vafn_gym.Dynamics`, a dict of its fields, or ``None`` for
+        the nominal robot): the twin takes them, and a running instruction is adapted again before the next action.
+
+        Raises ``ValueError``/``TypeError`` naming a bad field before anything changes.
+        """
+        dynamics = Dynamics.coerce(dynamics)
+        if self.twin is not None:
+            self.twin.set_dynamics(dynamics)
+        event = {"step": self.stream.total_steps, "dynamics": dynamics.label, "sequence": -1,
+                 "adaptation_time_s": 0.0, "announced": time.perf_counter(), "first_action_s": float("nan")}
+        if self._current is not None and self.k > 0:
+            event["sequence"] = self._current.sequence
+            self._policy, event["adaptation_time_s"] = self._adapt(self._current, self._current.sequence)
+        self.dynamics_events.append(event)
+
+    def _adapt(self, entry: InstructionLog, sequence: int) -> tuple[Any, float]:
+        """The model adapted to the running instruction on the twin (the unadapted model if adaptation fails, the
+        error recorded), and the wall time it took."""
+        start = time.perf_counter()
+        try:
+            policy = self.model.adapt(self.twin, task=self.stream.instruction, n_support=self.n_support, k=self.k,
+                                      seed=self.seed + sequence)
+        except Exception as error:  # noqa: BLE001 - a failed adaptation must not stop the arms' loop
+            policy = self.model
+            entry.error = f"{type(error).__name__}: {error}"
+            self.errors.append(f"instruction #{sequence}: adaptation failed, unadapted policy used: {entry.error}")
+        return policy, time.perf_counter() - start
+
     def _begin(self, item: QueuedInstruction) -> None:
         """Adapt to a freshly dequeued instruction and open its log row."""
         entry = InstructionLog(
@@ -153,18 +192,7 @@ class OnlineController:
         if callable(reset):  # a policy with per-instruction state (e.g. TargetInferencePolicy) starts afresh
             reset()
         if self.k > 0:
-            start = time.perf_counter()
-            try:
-                self._policy = self.model.adapt(
-                    self.twin, task=self.stream.instruction, n_support=self.n_support, k=self.k,
-                    seed=self.seed + item.sequence,
-                )
-            except Exception as error:  # noqa: BLE001 - a failed adaptation must not stop the arms' loop
-                entry.error = f"{type(error).__name__}: {error}"
-                self.errors.append(
-                    f"instruction #{item.sequence}: adaptation failed, unadapted policy used: {entry.error}"
-                )
-            entry.adaptation_time_s = time.perf_counter() - start
+            self._policy, entry.adaptation_time_s = self._adapt(entry, item.sequence)
         self._current = entry
         self.log.append(entry)
 
@@ -197,6 +225,9 @@ class OnlineController:
             action = self.hold_action
         else:
             action, _ = self._policy.predict(self._obs, deterministic=self.deterministic)
+            if self.dynamics_events and np.isnan(self.dynamics_events[-1]["first_action_s"]):
+                event = self.dynamics_events[-1]
+                event["first_action_s"] = time.perf_counter() - event["announced"]
             if np.isnan(self._current.first_action_time):
                 now = time.perf_counter()
                 self._current.first_action_time = now

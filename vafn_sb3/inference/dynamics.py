@@ -150,8 +150,12 @@ class DynamicsCompensation:
         self._history: dict[str, list[np.ndarray]] = {"obs": [], "actions": []}
 
     def reset(self) -> None:
-        """Forget the running episode (online mode): the response is refitted from the next steps."""
+        """Forget the running episode (online mode: the response is refitted from the next steps); resets the wrapped
+        policy too where it has a ``reset``."""
         self._history = {"obs": [], "actions": []}
+        inner = getattr(self.model, "reset", None)
+        if callable(inner):
+            inner()
         if self.online:
             self.response = ResponseFit()
 
@@ -183,8 +187,16 @@ class DynamicsCompensation:
     def adapt(
         self, env: gym.Env, task: Any = None, n_support: int = 200, k: int = 0, seed: int | None = None
     ) -> DynamicsCompensation:
-        """Collect ``n_support`` stochastic steps of the wrapped model on ``env`` and fit the response to them."""
-        support = collect_support(self.model, env, task, n_support, seed)
-        adapted = DynamicsCompensation(self.model, self.n_arms, fit_support(support, self.n_arms))
-        adapted.support = support
+        """Fit the response on ``n_support`` stochastic steps on ``env``, in two halves: the wrapped model's own
+        steps, then steps with the first fit undone (a large turn makes the first half's motion erratic; the second is
+        fitted on the commands actually sent, so it measures the response itself). ``k`` is not used."""
+        first = n_support // 2
+        halves = [collect_support(self.model, env, task, first, seed)] if first else []
+        response = fit_support(halves[0], self.n_arms) if halves else ResponseFit()
+        corrected = DynamicsCompensation(self.model, self.n_arms, response)
+        halves.append(collect_support(corrected, env, task, n_support - first, None if seed is None else seed + 1))
+        second = fit_support(halves[-1], self.n_arms)
+        adapted = DynamicsCompensation(self.model, self.n_arms, second if second.usable else response)
+        adapted.support = SupportSet(**{name: np.concatenate([getattr(h, name) for h in halves])
+                                        for name in SupportSet.__dataclass_fields__})
         return adapted
