@@ -26,7 +26,8 @@ def test_every_panel_method_has_its_algorithm_yaml_and_a_known_evaluation() -> N
         assert len(labels) == len(set(labels)), f"{panel.name}: duplicated labels"
         for method in panel.methods:
             assert (REPO_ROOT / "hyperparams" / f"{method.algo}.yml").is_file(), method
-            assert method.evaluation in ("adapt", "zero-shot", "infer-probe", "infer-learned", "infer-gradient"), method
+            assert method.evaluation in ("adapt", "zero-shot", "infer-probe", "infer-learned", "infer-gradient",
+                                         "identify", "identify-online"), method
             assert panel.over_k or method.evaluation != "adapt", f"{panel.name} is evaluated at K = 0 only"
             if method.models_from is not None:  # evaluates models another method of the panel trains
                 source = next(m for m in panel.methods if m.label == method.models_from)

@@ -13,7 +13,8 @@ panel is then one ``benchmarks/adaptation.py`` call, the one evaluation protocol
 instructions, support sets and K for every method, the scripted ceiling and the random floor beside them).
 
 1. **Fig. 3**, two panels: the hidden family (``VAFN/ThreeArmReachHidden-v1``, lengths 1-4, success / collision /
-   return against K) and the order family (``VAFN/ThreeArmReach-v1``, lengths 1-10, K = 0: zero-shot generalisation).
+   return against K) and the order family (``VAFN/ThreeArmReach-v1``, lengths 1-10, K = 0: zero-shot generalisation);
+   and the dynamics panel (``VAFN/ThreeArmReach-v1`` under the held-out dynamics variants, against K).
    ``--quick`` adds the packaged checkpoints (``vafn_sb3.available_pretrained``) to the panel of their env.
 2. **Fig. 4**: 2,000 steps of ``VAFN/ThreeArmStream-v1``, five instructions from ``[1,2,3]`` to ``[2,3,1,3,2,3]``,
    :class:`vafn_sb3.OnlineController` driving each packaged ``VAFN/ThreeArmReach-v1`` policy beside the scripted
@@ -277,9 +278,12 @@ def evaluate_panel(panel: Panel, budget: Budget, work: Path, out: Path, n_worker
             + (", plus the packaged checkpoints (pretrained_*)" if budget.pretrained else ""))
     command = [sys.executable, "benchmarks/adaptation.py", "--env", panel.env_id,
                "--min-length", str(panel.min_length), "--max-length", str(panel.max_length),
-               "--n-tasks", str(budget.n_tasks), "--k", *map(str, budget.k_values if panel.over_k else (0,)),
+               "--n-tasks", str(panel.n_tasks or budget.n_tasks),
+               "--k", *map(str, budget.k_values if panel.over_k else (0,)),
                "--n-support", str(budget.n_support), "--workers", str(n_workers),
                "--out", str(out / "adaptation" / panel.name), "--title", what]
+    if panel.dynamics is not None:
+        command += ["--dynamics", panel.dynamics]
     for method in fields:
         command += ["--method", *method]
     if own_sb3_zips:

@@ -29,7 +29,9 @@ class StudyMethod:
     (K = 0: a method that adapts inside the episode, or a panel that only measures generalisation), ``"infer-probe"`` or
     ``"infer-learned"`` (a model trained on observed targets run through ``TargetInferencePolicy`` with trilateration,
     or with the packaged target estimator), ``"infer-gradient"`` (the same with K gradient steps of the packaged
-    meta-learned ``GradientTargetEstimator``, refined at every later reading, every K of the mode). A method with
+    meta-learned ``GradientTargetEstimator``, refined at every later reading, every K of the mode), ``"identify"`` /
+    ``"identify-online"`` (a nominal model whose commands are turned back by ``DynamicsCompensation``, fitted on the
+    support set at every K, or on the episode's own steps at K = 0). A method with
     ``models_from`` trains nothing: it evaluates the models of that method of the panel another way.
     """
 
@@ -62,6 +64,10 @@ class Panel:
     methods: tuple[StudyMethod, ...]
     over_k: bool
     claim: str
+    #: Run every task under every variant of this split of ``vafn_gym.dynamics.DYNAMICS_VARIANTS`` (None: the env's).
+    dynamics: str | None = None
+    #: Held-out instructions (per variant); None: the budget's ``n_tasks``.
+    n_tasks: int | None = None
 
 
 def support_budget(n_support_steps: int, support_episodes: float, k_max: int, support: str = "episodes") -> str:
@@ -117,8 +123,28 @@ ORDER_PANEL = Panel(
     claim="A policy trained on short instructions follows unseen orders of lengths 1-10 without adaptation.",
 )
 
+#: Variants of the robot's dynamics (vafn_gym.dynamics, train / test lists): the weights, not a target, must change.
+VARIANTS = {"dynamics": "train"}
+DYNAMICS_PANEL = Panel(
+    "dynamics", ORDER_ENV, 1, 4,
+    (
+        StudyMethod("maml_sac_variants", "maml_sac", ORDER_ENV, env_kwargs=VARIANTS,
+                    hyperparams={"env_wrapper": "vafn_gym.wrappers.DynamicsTasks", "n_support": 400}),
+        # K = 0: domain randomisation over the train variants; K > 0: fine-tuning it on the support set.
+        StudyMethod("mtsac_variants", "mtsac", ORDER_ENV, env_kwargs=VARIANTS),
+        StudyMethod("sac_variants_history4", "sac", ORDER_ENV, "zero-shot", env_kwargs={**VARIANTS, "history": 4}),
+        StudyMethod("mtsac_nominal", "mtsac", ORDER_ENV),
+        StudyMethod("nominal_identify", "mtsac", ORDER_ENV, "identify", models_from="mtsac_nominal"),
+        StudyMethod("nominal_identify_online", "mtsac", ORDER_ENV, "identify-online", models_from="mtsac_nominal"),
+    ),
+    over_k=True,
+    claim="Meta-learned weights adapt to a robot whose dynamics changed in K <= 10 steps on <= 500 support steps.",
+    dynamics="test",
+    n_tasks=3,
+)
+
 #: The panels of the study, in the order of SUMMARY.md.
-PANELS: tuple[Panel, ...] = (HIDDEN_PANEL, ORDER_PANEL)
+PANELS: tuple[Panel, ...] = (HIDDEN_PANEL, ORDER_PANEL, DYNAMICS_PANEL)
 
 
 @dataclass(frozen=True)
