@@ -465,8 +465,9 @@ def main(argv: list[str] | None = None) -> None:
     write_csv_rows(rows, args.out / "adaptation.csv")
     write_csv_rows(summary, args.out / "adaptation_summary.csv")
     write_csv_rows(by_length_rows(rows), args.out / "adaptation_by_length.csv")
-    if args.dynamics != "none":
-        write_csv_rows(by_variant_rows(rows), args.out / "adaptation_by_variant.csv")
+    variant_table = by_variant_rows(rows) if args.dynamics != "none" else []
+    if variant_table:
+        write_csv_rows(variant_table, args.out / "adaptation_by_variant.csv")
     episodes = support_episodes(args, tasks)
     meta = {"command": shlex.join(sys.argv), "title": title, "env": args.env, "env_kwargs": args.env_kwargs,
             "test_lengths": [args.min_length, args.max_length], "n_tasks": len(tasks), "benchmark_seed": benchmark.seed,
@@ -479,7 +480,8 @@ def main(argv: list[str] | None = None) -> None:
                                           "env_kwargs": m.env_kwargs, "zero_shot": m.zero_shot,
                                           "target_inference": m.target_inference, "compensation": m.compensation,
                                           **estimator_record(m, args)} for m in methods],
-            "eval_wall_s": round(time.perf_counter() - start, 1), "summary": summary}
+            "eval_wall_s": round(time.perf_counter() - start, 1), "summary": summary,
+            **({"by_variant": variant_table} if variant_table else {})}
     (args.out / "adaptation.json").write_text(json.dumps(meta, indent=2))
     title = figure_title(meta)
     plot_adaptation(curves, args.out / "adaptation.png", title, references=REFERENCES)

@@ -1,6 +1,6 @@
 """The robot changes mid-stream: does the online controller finish the running instruction and the ones after it?
 
-    python benchmarks/dynamics_online.py --out results/dynamics
+    python benchmarks/dynamics_online.py --out results/adaptation/dynamics
 
 For every held-out dynamics variant (``vafn_gym.dynamics.DYNAMICS_VARIANTS["test"]``) a stream of ``--n-instructions``
 held-out test instructions (lengths 2-3) runs under :class:`vafn_sb3.OnlineController` on nominal dynamics; after the
@@ -97,7 +97,8 @@ def main() -> None:
     parser.add_argument("--k", type=int, default=5, help="maml-announced: inner rounds")
     parser.add_argument("--n-support", type=int, default=25, help="twin steps an announcement adapts on")
     parser.add_argument("--horizon", type=int, default=2000, help="stream steps at most")
-    parser.add_argument("--out", type=Path, default=REPO_ROOT / "results" / "dynamics", help="output folder")
+    parser.add_argument("--out", type=Path, default=REPO_ROOT / "results" / "adaptation" / "dynamics",
+                        help="output folder")
     args = parser.parse_args()
     torch.set_num_threads(1)
     if args.model is None:

@@ -154,6 +154,7 @@ def test_adaptation_study_runs_every_task_under_every_held_out_variant(tmp_path)
     assert counts == {"mtsac": 2 * len(labels), "identify": 2 * len(labels), "online": len(labels)}
     meta = json.loads((out / "adaptation.json").read_text())
     assert [m["compensation"] for m in meta["methods"]] == [None, "identify", "identify-online"]
+    assert {(r["method"], r["k"]) for r in meta["by_variant"]} >= {("mtsac", 0), ("identify", 1)}
     assert meta["dynamics"]["version"] == DYNAMICS_VERSION and len(meta["dynamics"]["variants"]) == len(labels)
     with (out / "adaptation_by_variant.csv").open() as handle:
         assert {(r["method"], r["k"]) for r in csv.DictReader(handle)} >= {("mtsac", "0"), ("mtsac", "1")}
