@@ -12,7 +12,8 @@ trained on the nominal robot; default the packaged MAML-SAC):
   ``--n-support`` twin steps);
 - ``identify-announced``: told at once: the turn of the response is identified on ``--n-support`` twin steps and undone
   (:class:`vafn_sb3.inference.DynamicsCompensation`);
-- ``identify-online``: never told: the turn is identified from the arm's own last steps.
+- ``identify-online``: never told: the turn is identified from the arm's own last steps (``steps to identify``: control
+  steps from the change until its fit is within 20° of the variant's turn, on variants turned by 30° or more).
 
 Writes ``dynamics_online.md`` (rates over variants, first-action latency after an announcement) and prints it.
 """
@@ -62,7 +63,8 @@ def run_stream(name: str, model: Any, variant: Dynamics, tasks: list, args: argp
     stream = gym.make("VAFN/ThreeArmStream-v1", arrivals={0: [t.to_code() for t in tasks]}, auto_dequeue=False,
                       horizon=args.horizon)
     controller = controller_for(name, model, stream, args)
-    changed, announced = False, name.endswith("announced")
+    changed, announced, identified_after = False, name.endswith("announced"), -1
+    compensation = controller.model if name == "identify-online" else None
     try:
         while stream.unwrapped.total_steps < args.horizon and len(controller.log) <= len(tasks):
             controller.step()
@@ -71,7 +73,9 @@ def run_stream(name: str, model: Any, variant: Dynamics, tasks: list, args: argp
                 stream.unwrapped.set_dynamics(variant)
                 if announced:
                     controller.announce_dynamics(variant)
-                changed = True
+                changed, change_step = True, stream.unwrapped.total_steps
+            if changed and compensation is not None and identified_after < 0 and turned_back(compensation, variant):
+                identified_after = stream.unwrapped.total_steps - change_step
             if len(log) == len(tasks) and log[-1].outcome != "running":
                 break
     finally:
@@ -83,7 +87,14 @@ def run_stream(name: str, model: Any, variant: Dynamics, tasks: list, args: argp
             "changed_success": float(bool(log) and log[0].success),
             "later_success": float(np.mean([e.success for e in log[1:]])) if len(log) > 1 else 0.0,
             "completed": sum(e.success for e in log), "collisions": sum(e.collisions > 0 for e in log),
-            "first_action_ms": 1000 * event.get("first_action_s", float("nan"))}
+            "first_action_ms": 1000 * event.get("first_action_s", float("nan")), "identified_after": identified_after}
+
+
+def turned_back(compensation: DynamicsCompensation, variant: Dynamics) -> bool:
+    """Whether the online fit is usable and within 20° of ``variant``'s turn."""
+    response = compensation.response
+    error = (response.rotation - variant.action_rotation + 180.0) % 360.0 - 180.0
+    return response.usable and abs(error) <= 20.0
 
 
 def main() -> None:
@@ -118,14 +129,20 @@ def main() -> None:
              f"({', '.join(t.to_code() for t in tasks)}); the variant switched on {args.change_after} steps into the "
              f"first; {time.perf_counter() - start:.0f} s.", "",
              "| controller | instruction running at the change | instructions after it | streams with a contact "
-             "| announcement → first action (ms, median / max) |", "|---|---|---|---|---|"]
+             "| announcement → first action (ms, median / max) | steps to identify (median / max) |",
+             "|---|---|---|---|---|---|"]
     for name in CONTROLLERS:
         mine = [r for r in rows if r["controller"] == name]
         latency = [r["first_action_ms"] for r in mine if not np.isnan(r["first_action_ms"])]
         timing = f"{np.median(latency):.0f} / {np.max(latency):.0f}" if latency else "–"
+        turned = [r["identified_after"] for r, v in zip(mine, DYNAMICS_VARIANTS["test"])
+                  if abs(v.action_rotation) >= 30]
+        found = "–" if name != "identify-online" else (
+            f"{np.median(turned):.0f} / {np.max(turned):.0f}" if min(turned) >= 0
+            else f"{sum(t < 0 for t in turned)} never")
         lines.append(f"| {name} | {sum(r['changed_success'] for r in mine):.0f}/{len(mine)} | "
                      f"{np.mean([r['later_success'] for r in mine]):.2f} | {sum(r['collisions'] > 0 for r in mine)} "
-                     f"| {timing} |")
+                     f"| {timing} | {found} |")
     lines += ["", "Per variant (instruction at the change ✓/✗, then the share of later ones):", "",
               "| variant | " + " | ".join(CONTROLLERS) + " |", "|---|" + "---|" * len(CONTROLLERS)]
     for variant in DYNAMICS_VARIANTS["test"]:
