@@ -246,11 +246,13 @@ def training_costs(jobs: list[TrainJob]) -> list[dict[str, Any]]:
 def pretrained_methods(panel: Panel) -> list[StudyMethod]:
     """The packaged checkpoints a panel evaluates: those of its env, and goal-observing ones through inference."""
     from vafn_sb3 import available_pretrained
+    from vafn_sb3.registry import ALGORITHMS
 
     methods = []
     for algo, env_id in available_pretrained():
         if env_id == panel.env_id:
-            methods.append(StudyMethod(f"pretrained_{algo}", algo, env_id, "adapt" if panel.over_k else "zero-shot"))
+            adapts = panel.over_k and callable(getattr(ALGORITHMS[algo].cls, "adapt", None))  # plain SAC has no adapt
+            methods.append(StudyMethod(f"pretrained_{algo}", algo, env_id, "adapt" if adapts else "zero-shot"))
         elif panel.env_id == HIDDEN_ENV and env_id == GOAL_ENV:
             methods += [StudyMethod(f"pretrained_{algo}_infer_{how}", algo, env_id, f"infer-{how}")
                         for how in ("probe", "learned", "gradient")]
