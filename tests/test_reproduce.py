@@ -116,6 +116,9 @@ def test_reproduce_smoke_writes_every_artefact(tmp_path: Path) -> None:
     assert len((out / "adaptation" / "hidden" / "adaptation.csv").read_text().splitlines()) == 1 + 6 + 6 * 2
     # order: scripted, random, maml_sac, mappo, the two packaged order-family policies, all at K = 0
     assert len((out / "adaptation" / "order" / "adaptation.csv").read_text().splitlines()) == 1 + 6
+    # dynamics: every row under each of the 12 held-out variants: scripted, random and the packaged SAC at K = 0, the
+    # packaged MAML-SAC at K = 0 and 1 (1 task)
+    assert len((out / "adaptation" / "dynamics" / "adaptation.csv").read_text().splitlines()) == 1 + 12 * (3 + 2)
     costs = (out / "training_costs.csv").read_text().splitlines()
     assert len(costs) == 1 + 4 and all(",300," in row or ",1024," in row for row in costs[1:]), costs
     summary = (out / "SUMMARY.md").read_text()

@@ -280,7 +280,7 @@ def evaluate_panel(panel: Panel, budget: Budget, work: Path, out: Path, n_worker
             + (", plus the packaged checkpoints (pretrained_*)" if budget.pretrained else ""))
     command = [sys.executable, "benchmarks/adaptation.py", "--env", panel.env_id,
                "--min-length", str(panel.min_length), "--max-length", str(panel.max_length),
-               "--n-tasks", str(panel.n_tasks or budget.n_tasks),
+               "--n-tasks", str(min(panel.n_tasks or budget.n_tasks, budget.n_tasks)),
                "--k", *map(str, budget.k_values if panel.over_k else (0,)),
                "--n-support", str(budget.n_support), "--workers", str(n_workers),
                "--out", str(out / "adaptation" / panel.name), "--title", what]

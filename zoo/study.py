@@ -66,7 +66,7 @@ class Panel:
     claim: str
     #: Run every task under every variant of this split of ``vafn_gym.dynamics.DYNAMICS_VARIANTS`` (None: the env's).
     dynamics: str | None = None
-    #: Held-out instructions (per variant); None: the budget's ``n_tasks``.
+    #: Held-out instructions (per variant), at most the budget's ``n_tasks``; None: the budget's.
     n_tasks: int | None = None
 
 
