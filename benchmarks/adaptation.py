@@ -451,10 +451,11 @@ def main(argv: list[str] | None = None) -> None:
         kept = [row for row in read_rows(args.out / "adaptation.csv")
                 if row["method"] not in replaced and (row["method"], row["seed"]) not in evaluated]
         earlier = {(row["task"], row["n_support"]) for row in kept}
+        earlier_dynamics = (previous_meta.get("dynamics") or {}).get("split", "none")
         if not earlier <= {(task.to_code(), args.n_support) for task in tasks} or (
-                previous_meta.get("support", "episodes") != args.support):
-            raise SystemExit(f"--append: {args.out / 'adaptation.csv'} has other tasks, another --n-support or "
-                             "another --support")
+                previous_meta.get("support", "episodes") != args.support) or earlier_dynamics != args.dynamics:
+            raise SystemExit(f"--append: {args.out / 'adaptation.csv'} has other tasks, another --n-support, "
+                             "another --support or another --dynamics")
         method_records = [m for m in previous_meta["methods"] if m["label"] not in labels]
         title = previous_meta.get("title", "") if args.title is None else args.title
         if args.add_seeds:

@@ -158,6 +158,10 @@ def test_adaptation_study_runs_every_task_under_every_held_out_variant(tmp_path)
     assert meta["dynamics"]["version"] == DYNAMICS_VERSION and len(meta["dynamics"]["variants"]) == len(labels)
     with (out / "adaptation_by_variant.csv").open() as handle:
         assert {(r["method"], r["k"]) for r in csv.DictReader(handle)} >= {("mtsac", "0"), ("mtsac", "1")}
+    with pytest.raises(SystemExit, match="another --dynamics"):  # nominal rows would mix with the variants'
+        study["main"](["--env", "VAFN/ThreeArmReach-v1", "--max-length", "1", "--n-tasks", "1", "--k", "0", "1",
+                       "--n-support", "8", "--method", "mtsac", "mtsac", str(tmp_path / "mtsac_seed*.zip"),
+                       "--append", "--out", str(out)])
 
 
 def _pairs(rotation: float, n: int, noise: float, seed: int = 0):
