@@ -20,7 +20,7 @@ import numpy as np
 from vafn_gym.constants import CONTROL_DT, PHASE_EXECUTING, PHASE_INDEX, POS_SLICE, V_MAX
 from vafn_sb3.common.adaptation import SupportSet, collect_support
 
-__all__ = ["DynamicsCompensation", "ResponseFit", "fit_response", "response_pairs"]
+__all__ = ["DynamicsCompensation", "ResponseFit", "executing_arms", "fit_response"]
 
 #: Lags (control steps between a command and the motion it causes) tried by the fit: the arm's own tracking lag plus
 #: the variant family's delays.
@@ -67,33 +67,12 @@ class ResponseFit:
         return np.clip(turned, -1.0, 1.0).reshape(np.shape(action)).astype(np.float32)
 
 
-def response_pairs(
-    observations: np.ndarray, actions: np.ndarray, next_observations: np.ndarray, episode_ends: np.ndarray,
-    n_arms: int, lag: int,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Horizontal ``(command, motion)`` pairs of the executing arm, the command ``lag`` steps before the motion.
-
-    A pair is kept where one arm executes (phase flag 1) in both readings and the ``lag`` earlier steps belong to the
-    same episode; command = action · V_MAX · CONTROL_DT (metres), motion = the measured displacement.
-    """
-    n = len(actions)
-    blocks = observations.reshape(n, n_arms, -1)
-    next_blocks = next_observations.reshape(n, n_arms, -1)
-    commands, motions = [], []
-    for t in range(lag, n):
-        if episode_ends[t - lag:t].any():
-            continue
-        executing = np.flatnonzero((np.round(blocks[t, :, PHASE_INDEX]) == PHASE_EXECUTING)
-                                   & (np.round(next_blocks[t, :, PHASE_INDEX]) == PHASE_EXECUTING))
-        if len(executing) != 1:
-            continue
-        arm = int(executing[0])
-        command = actions[t - lag, 3 * arm:3 * arm + 2] * V_MAX * CONTROL_DT
-        if np.linalg.norm(command) < MIN_COMMAND:
-            continue
-        commands.append(command)
-        motions.append((next_blocks[t, arm, POS_SLICE] - blocks[t, arm, POS_SLICE])[:2])
-    return np.asarray(commands).reshape(-1, 2), np.asarray(motions).reshape(-1, 2)
+def executing_arms(observations: np.ndarray, next_observations: np.ndarray, n_arms: int) -> np.ndarray:
+    """Per transition, the index of the one arm executing (phase flag 1) before and after it, or -1."""
+    n = len(observations)
+    before = np.round(observations.reshape(n, n_arms, -1)[:, :, PHASE_INDEX]) == PHASE_EXECUTING
+    both = before & (np.round(next_observations.reshape(n, n_arms, -1)[:, :, PHASE_INDEX]) == PHASE_EXECUTING)
+    return np.where(both.sum(axis=1) == 1, both.argmax(axis=1), -1)
 
 
 def fit_response(
@@ -102,15 +81,29 @@ def fit_response(
 ) -> ResponseFit:
     """The :class:`ResponseFit` of the most consistent lag in ``0..max_lag`` (the identity if nothing fits).
 
-    With u, m the command and the motion as complex numbers, the turn is ``arg Σ conj(u) m`` (the least-squares angle)
-    and the consistency ``|Σ conj(u) m| / Σ |u| |m|``.
+    Pairs: where one arm executes in both readings of a transition, its measured horizontal displacement (the motion)
+    and its horizontal action ``lag`` steps earlier in the same episode, times V_MAX · CONTROL_DT (the command, metres);
+    commands shorter than ``MIN_COMMAND`` are skipped. With u, m the command and the motion as complex numbers, the turn
+    is ``arg Σ conj(u) m`` (the least-squares angle) and the consistency ``|Σ conj(u) m| / Σ |u| |m|``.
     """
+    n = len(actions)
+    arms = executing_arms(observations, next_observations, n_arms)
+    steps = np.flatnonzero(arms >= 0)
+    own = arms[steps]
+    moves = (next_observations.reshape(n, n_arms, -1)[steps, own, POS_SLICE]
+             - observations.reshape(n, n_arms, -1)[steps, own, POS_SLICE])[:, :2]
+    motions = moves[:, 0] + 1j * moves[:, 1]
+    ends_before = np.concatenate([[0.0], np.cumsum(episode_ends)])  # episode ends among transitions 0..t-1
+    blocks = actions.reshape(n, n_arms, -1)
     best = ResponseFit()
     for lag in range(max_lag + 1):
-        commands, motions = response_pairs(observations, actions, next_observations, episode_ends, n_arms, lag)
+        keep = (steps >= lag) & (ends_before[steps] == ends_before[np.maximum(steps - lag, 0)])
+        commands = blocks[steps[keep] - lag, own[keep], :2] * V_MAX * CONTROL_DT
+        long_enough = np.linalg.norm(commands, axis=1) >= MIN_COMMAND
+        commands = commands[long_enough]
         if len(commands) < MIN_PAIRS:
             continue
-        products = np.conj(commands[:, 0] + 1j * commands[:, 1]) * (motions[:, 0] + 1j * motions[:, 1])
+        products = np.conj(commands[:, 0] + 1j * commands[:, 1]) * motions[keep][long_enough]
         weight = float(np.sum(np.abs(products)))
         consistency = float(abs(products.sum())) / weight if weight > 0 else 0.0
         if consistency > best.consistency:
