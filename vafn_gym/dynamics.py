@@ -26,6 +26,14 @@ MAX_SPEED = 10.0
 DYNAMICS_SPLITS = ("train", "test")
 
 
+def turn_about_z(vectors: np.ndarray, degrees: float) -> np.ndarray:
+    """``vectors`` (last axis x, y, z) turned counter-clockwise by ``degrees`` about the vertical axis."""
+    angle = np.radians(degrees)
+    cos, sin = np.cos(angle), np.sin(angle)
+    x, y, z = vectors[..., 0], vectors[..., 1], vectors[..., 2]
+    return np.stack([cos * x - sin * y, sin * x + cos * y, z], axis=-1)
+
+
 @dataclass(frozen=True)
 class Dynamics:
     """One dynamics variant of every arm (the nominal robot by default).
@@ -81,10 +89,7 @@ class Dynamics:
 
     def velocity(self, velocity: np.ndarray) -> np.ndarray:
         """The velocity the arm executes for a commanded world-frame ``velocity`` (rotated, scaled, capped)."""
-        angle = np.radians(self.action_rotation)
-        cos, sin = np.cos(angle), np.sin(angle)
-        x, y, z = velocity
-        moved = self.action_gain * np.array([cos * x - sin * y, sin * x + cos * y, z])
+        moved = self.action_gain * turn_about_z(np.asarray(velocity, dtype=np.float64), self.action_rotation)
         if self.speed_limit is not None:
             moved = np.clip(moved, -self.speed_limit, self.speed_limit)
         return moved

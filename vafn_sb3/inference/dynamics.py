@@ -18,6 +18,7 @@ import gymnasium as gym
 import numpy as np
 
 from vafn_gym.constants import CONTROL_DT, PHASE_EXECUTING, PHASE_INDEX, POS_SLICE, V_MAX
+from vafn_gym.dynamics import turn_about_z
 from vafn_sb3.common.adaptation import SupportSet, collect_support
 
 __all__ = ["DynamicsCompensation", "ResponseFit", "executing_arms", "fit_response"]
@@ -60,10 +61,7 @@ class ResponseFit:
         if not self.usable:
             return action
         blocks = np.asarray(action, dtype=np.float64).reshape(*np.shape(action)[:-1], n_arms, 3)
-        angle = -np.radians(self.rotation)
-        cos, sin = np.cos(angle), np.sin(angle)
-        x, y, z = blocks[..., 0], blocks[..., 1], blocks[..., 2]
-        turned = np.stack([cos * x - sin * y, sin * x + cos * y, z], axis=-1)
+        turned = turn_about_z(blocks, -self.rotation)
         return np.clip(turned, -1.0, 1.0).reshape(np.shape(action)).astype(np.float32)
 
 
