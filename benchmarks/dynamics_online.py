@@ -66,7 +66,7 @@ def run_stream(name: str, model: Any, variant: Dynamics, tasks: list, args: argp
     changed, announced, identified_after = False, name.endswith("announced"), -1
     compensation = controller.model if name == "identify-online" else None
     try:
-        while stream.unwrapped.total_steps < args.horizon and len(controller.log) <= len(tasks):
+        while stream.unwrapped.total_steps < args.horizon:
             controller.step()
             log = controller.log
             if not changed and log and stream.unwrapped.total_steps - log[0].start_step >= args.change_after:
