@@ -76,7 +76,7 @@ def parse_args() -> argparse.Namespace:
                         help="cards per glyph set of the camera section (0: skip)")
     parser.add_argument("--camera-only", action="store_true",
                         help="skip Table 1 and the speech robustness; run only the camera section")
-    parser.add_argument("--people-speech", type=Path, default=None,
+    parser.add_argument("--people-speech", type=Path, nargs="+", default=None,
                         help="real people's recorded words (vafn_media.people): adds the real-people section "
                              "(benchmarks/real_people.py: test speakers and glyphs, acted on correctly / wrongly, "
                              "pocketsphinx as a reference) to results/real_people/")
@@ -332,7 +332,7 @@ def main() -> None:
     if args.people_speech is not None:
         import real_people
 
-        real_people.main(["--speech", str(args.people_speech), "--handwriting", str(args.people_handwriting),
+        real_people.main(["--speech", *map(str, args.people_speech), "--handwriting", str(args.people_handwriting),
                           "--pocketsphinx"] + (["--checkpoint", args.checkpoint] if args.checkpoint else []))
     if not (args.robust_only or args.camera_only):
         table1(args, generator, started)

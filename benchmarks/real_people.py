@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -62,14 +62,14 @@ def safe(transcribe: Callable[..., object], **inputs):
         return None
 
 
-def cells(transcribe: Callable[..., object], speech: Path, handwriting: Path, sequences: int,
+def cells(transcribe: Callable[..., object], speech: Sequence[Path], handwriting: Path, sequences: int,
           strips: int) -> list[dict]:
     """Every cell of the table for one reader: each test recording alone and instructions of several test speakers'
     words, per condition and speaker, handwriting clean and Cutout, and audio + handwriting (8 kHz + 20 dB audio,
     Cutout handwriting).
 
     :param transcribe: ``InstructionGenerator.transcribe`` or a reference reader with the same signature.
-    :param speech: the spoken-word corpus.
+    :param speech: the spoken-word corpus folder(s).
     :param handwriting: the MNIST training files.
     :param sequences: instructions of several words.
     :param strips: handwriting strips per condition.
@@ -170,7 +170,8 @@ def write(rows: list[dict], out: Path, header: str) -> None:
 def main(argv: list[str] | None = None) -> list[dict]:
     """Run the benchmark and write its tables."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--speech", type=Path, required=True, help="the spoken-word corpus (vafn_media.people)")
+    parser.add_argument("--speech", type=Path, nargs="+", required=True,
+                        help="the spoken-word corpus folder or folders (vafn_media.people)")
     parser.add_argument("--handwriting", type=Path, required=True, help="folder with MNIST's training files")
     parser.add_argument("--checkpoint", type=Path, default=None, help="reader checkpoint (default: the packaged one)")
     parser.add_argument("--sequences", type=int, default=300, help="instructions of 1-5 words of several speakers")
@@ -190,7 +191,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     if args.pocketsphinx:
         rows += [{"reader": "pocketsphinx", **r} for r in cells(pocketsphinx_reader(), args.speech, args.handwriting,
                                                                 args.sequences, 0) if "handwriting" not in r["cell"]]
-    command = (f"python benchmarks/real_people.py --speech <spoken words> --handwriting <MNIST training files> "
+    corpora = " ".join(f"<{p.name}>" for p in args.speech)
+    command = (f"python benchmarks/real_people.py --speech {corpora} --handwriting <MNIST training files> "
                f"--sequences {args.sequences} --strips {args.strips}" + " --pocketsphinx" * args.pocketsphinx
                + (f" --checkpoint {args.checkpoint.name}" if args.checkpoint else ""))
     root = Path(__file__).resolve().parents[1]

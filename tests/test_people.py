@@ -84,6 +84,19 @@ def test_spoken_words_keep_only_their_split(corpus):
         assert all(speaker_split(s) == split for s in words.speakers) and words.clips() == 9
 
 
+def test_spoken_words_pool_several_corpora(corpus, tmp_path):
+    more = tmp_path / "more"
+    speaker = _speakers("train", 4)[-1]  # a train speaker the first corpus does not have
+    for arm, word in WORDS.items():
+        _write_wav(more / word / f"{speaker}_nohash_0.wav", _word(arm, np.random.default_rng(arm)))
+    _write_wav(more / "one" / f"{_speakers('train', 1)[0]}_nohash_0.wav", np.zeros(RATE))  # already in the first
+    pooled = SpokenWords.read([corpus, more], "train")
+    assert speaker in pooled.speakers and pooled.clips() == 12
+    assert all(p.parent.parent == corpus for p in pooled.speakers[_speakers("train", 1)[0]][1])
+    with pytest.raises(ValueError, match="no spoken-word corpus"):
+        SpokenWords.read([], "train")
+
+
 def test_spoken_words_reject_a_folder_that_is_not_a_corpus(tmp_path):
     with pytest.raises(ValueError, match="no folder one, two, three"):
         SpokenWords.read(tmp_path, "train")
@@ -196,3 +209,10 @@ def test_audio_fills_the_digit_a_cutout_hides_without_a_disagreement_flag():
     both = generator.transcribe(audio=(speak(arms), ESPEAK_SAMPLE_RATE), image=masked)
     assert both.arms == arms
     assert not any("disagree" in w for w in both.warnings)
+
+
+def test_training_command_keeps_no_machine_path_of_any_corpus():
+    from vafn_media.train import without_machine_paths
+
+    argv = ["--people-speech", "/data/sc", "/home/me/more", "--steps", "5", "--init=/x/model.pt"]
+    assert without_machine_paths(argv) == ["--people-speech", "<sc>", "<more>", "--steps", "5", "--init=<model.pt>"]

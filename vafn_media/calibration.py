@@ -211,9 +211,9 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", type=Path, default=None)
     parser.add_argument("--cache-dir", type=Path, default=None)
-    parser.add_argument("--people-speech", type=Path, default=None,
-                        help="the real people's recorded words the checkpoint trained with (calibrates on their "
-                             "selection speakers too, as training did)")
+    parser.add_argument("--people-speech", type=Path, nargs="+", default=None,
+                        help="the real people's recorded words (folder or folders) the checkpoint trained with "
+                             "(calibrates on their selection speakers too, as training did)")
     parser.add_argument("--people-handwriting", type=Path, default=None, help="and their MNIST training files")
     args = parser.parse_args(argv)
     import torch

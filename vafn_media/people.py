@@ -75,26 +75,32 @@ class SpokenWords:
     speakers: dict[str, dict[int, tuple[Path, ...]]]
 
     @classmethod
-    def read(cls, root: str | Path, split: str) -> SpokenWords:
-        """Index ``<root>/{one,two,three}/*.wav`` and keep the speakers of ``split``.
+    def read(cls, root: str | Path | Sequence[str | Path], split: str) -> SpokenWords:
+        """Index ``<root>/{one,two,three}/*.wav`` of one corpus folder or several (their speakers pooled; a file name
+        already seen in an earlier folder is skipped) and keep the speakers of ``split``.
 
-        :param root: the corpus folder.
+        :param root: the corpus folder, or a sequence of them.
         :param split: "train", "selection" or "test".
         """
         _check_split(split, list(SPEAKER_SPLITS))
-        root = Path(root)
-        missing = [word for word in WORDS.values() if not (root / word).is_dir()]
-        if missing:
-            raise ValueError(f"{root} is not a spoken-word corpus: it has no folder {', '.join(missing)} "
-                             f"(expected <root>/one, two, three/<speaker>_nohash_<n>.wav)")
+        roots = [Path(root)] if isinstance(root, (str, Path)) else [Path(r) for r in root]
+        if not roots:
+            raise ValueError("no spoken-word corpus folder given")
         speakers: dict[str, dict[int, list[Path]]] = {}
-        for arm, word in WORDS.items():
-            for path in sorted((root / word).glob("*.wav")):
-                speaker = path.name.split("_nohash_")[0]
-                if speaker_split(speaker) == split:
-                    speakers.setdefault(speaker, {}).setdefault(arm, []).append(path)
+        seen: set[tuple[str, str]] = set()
+        for folder in roots:
+            missing = [word for word in WORDS.values() if not (folder / word).is_dir()]
+            if missing:
+                raise ValueError(f"{folder} is not a spoken-word corpus: it has no folder {', '.join(missing)} "
+                                 f"(expected <root>/one, two, three/<speaker>_nohash_<n>.wav)")
+            for arm, word in WORDS.items():
+                for path in sorted((folder / word).glob("*.wav")):
+                    speaker = path.name.split("_nohash_")[0]
+                    if speaker_split(speaker) == split and (word, path.name) not in seen:
+                        seen.add((word, path.name))
+                        speakers.setdefault(speaker, {}).setdefault(arm, []).append(path)
         if not speakers:
-            raise ValueError(f"{root} has no recordings of {split} speakers")
+            raise ValueError(f"{', '.join(map(str, roots))} has no recordings of {split} speakers")
         return cls(split, {s: {a: tuple(p) for a, p in words.items()} for s, words in sorted(speakers.items())})
 
     def complete_speakers(self) -> list[str]:
@@ -283,13 +289,13 @@ def _degraded(waveform: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return resample(phone, PHONE_RATE, SAMPLE_RATE)
 
 
-def people_training_data(speech_root: str | Path, handwriting_root: str | Path, split: str, count: int, seed: int,
-                         cache_dir: Path, progress: bool = True):
+def people_training_data(speech_root: str | Path | Sequence[str | Path], handwriting_root: str | Path, split: str,
+                         count: int, seed: int, cache_dir: Path, progress: bool = True):
     """Training-ready items (:class:`~vafn_media.dataset.TrainingData`) of real people: instructions said by the
     split's speakers (clean and two degraded copies) and written with the split's glyphs (clean and a Cutout copy),
     cached under ``cache_dir`` by the corpora's file lists, the split, count, seed and this code.
 
-    :param speech_root: the spoken-word corpus (:class:`SpokenWords`).
+    :param speech_root: the spoken-word corpus folder or folders (:class:`SpokenWords`).
     :param handwriting_root: the MNIST training files (:func:`handwritten_glyphs`).
     :param split: "train" or "selection" ("test" is for the benchmark only).
     :param count: number of instructions.

@@ -151,14 +151,15 @@ PATH_OPTIONS: tuple[str, ...] = ("--init", "--out", "--logdir", "--cache-dir", "
 
 
 def without_machine_paths(argv: list[str]) -> list[str]:
-    """The command-line words with each path option's value cut to its last part (``/data/sc`` -> ``<sc>``)."""
-    words = list(argv)
-    for i, word in enumerate(words):
+    """The command-line words with each path option's value(s) cut to the last part (``/data/sc`` -> ``<sc>``)."""
+    words, in_path_option = [], False
+    for word in argv:
         option, _, value = word.partition("=")
-        if option in PATH_OPTIONS and value:
-            words[i] = f"{option}=<{Path(value).name}>"
-        elif i and words[i - 1] in PATH_OPTIONS:
-            words[i] = f"<{Path(word).name}>"
+        if word.startswith("-"):
+            in_path_option = option in PATH_OPTIONS and not value
+            words.append(f"{option}=<{Path(value).name}>" if option in PATH_OPTIONS and value else word)
+        else:
+            words.append(f"<{Path(word).name}>" if in_path_option else word)
     return words
 
 
@@ -216,10 +217,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--tempo-probability", type=float, default=0.3,
                         help="chance that a degraded training copy is said at another rate with its pitch kept (a "
                              f"phase-vocoder tempo change to a rate in {TEMPO_RATE_RANGE}x)")
-    parser.add_argument("--people-speech", type=Path, default=None,
-                        help="a local copy of real people's recorded words (<dir>/one, two, three/<speaker>_nohash_<n>"
-                             ".wav, e.g. Google Speech Commands): instructions said by its training speakers are added "
-                             "to the training items, its selection speakers validate and calibrate (vafn_media.people)")
+    parser.add_argument("--people-speech", type=Path, nargs="+", default=None,
+                        help="local copies of real people's recorded words, one folder or several (<dir>/one, two, "
+                             "three/<speaker>_nohash_<n>.wav, e.g. Google Speech Commands): instructions said by "
+                             "their training speakers are added to the training items, their selection speakers "
+                             "validate and calibrate (vafn_media.people)")
     parser.add_argument("--people-handwriting", type=Path, default=None,
                         help="folder with MNIST's training files (train-images-idx3-ubyte[.gz], train-labels-idx1-"
                              "ubyte[.gz]): the real people's items are written with its handwriting (needs "
@@ -371,7 +373,7 @@ def main(argv=None) -> dict:
             if k not in ("out", "logdir", "cache_dir", "init", "people_speech", "people_handwriting")
         },
         "people": None if people is None else {
-            "speech": args.people_speech.name, "handwriting": args.people_handwriting.name},
+            "speech": " + ".join(p.name for p in args.people_speech), "handwriting": args.people_handwriting.name},
         "init": None if args.init is None else str(args.init.name),
         "data_seconds": round(data_seconds, 1),
         "total_seconds": round(time.time() - started, 1),
