@@ -698,6 +698,10 @@ def test_clipped_audio_is_flagged_low_confidence(generator, sample):
     clipped = np.clip(wave * 50, -1, 1)
     result = generator.transcribe(audio=(clipped, rate))
     assert result.low_confidence and any("clipped" in w for w in result.warnings)
+    amplified = generator.transcribe(audio=(clipped * 1.5, rate))  # flat tops above full scale are still clipping
+    assert amplified.low_confidence and any("clipped" in w for w in amplified.warnings)
+    loud = wave * 1.4 / np.abs(wave).max()  # a float waveform beyond full scale is intact: read as it is
+    assert not any("clip" in w for w in generator.transcribe(audio=(loud, rate)).warnings)
 
 
 def test_noise_only_audio_is_not_read_with_high_confidence(generator):

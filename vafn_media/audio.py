@@ -280,11 +280,12 @@ def load_audio(source: AudioSource, sample_rate: int | None = None) -> Audio:
     if peak == 0.0 or level_dbfs < SILENCE_DBFS:
         raise ValueError(f"audio is silent (RMS {level_dbfs:.0f} dBFS < {SILENCE_DBFS:.0f} dBFS)")
     warnings = []
-    clipped = float(np.mean(np.abs(waveform) >= CLIP_LEVEL)) if peak >= CLIP_LEVEL else 0.0
+    # A float waveform beyond full scale is intact (the features are level-normalised); clipping is flat tops at its
+    # own peak, wherever that is.
+    top = CLIP_LEVEL * max(peak, 1.0)
+    clipped = float(np.mean(np.abs(waveform) >= top)) if peak >= top else 0.0
     if clipped > CLIP_FRACTION:
         warnings.append(f"audio is clipped ({100 * clipped:.1f}% of samples at full scale)")
-    if peak > 1.0 + 1e-3:
-        warnings.append(f"audio exceeds full scale (peak {peak:.2f}); it was not normalised")
     waveform = resample(waveform, rate, SAMPLE_RATE)
     problems, edges = inspect_speech(waveform)
     return Audio(np.ascontiguousarray(waveform), SAMPLE_RATE, warnings + problems, rate, edges)
