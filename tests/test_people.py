@@ -84,6 +84,22 @@ def test_spoken_words_keep_only_their_split(corpus):
         assert all(speaker_split(s) == split for s in words.speakers) and words.clips() == 9
 
 
+def test_training_words_get_their_own_level(corpus):
+    words = SpokenWords.read(corpus, "train")
+    speaker = sorted(words.speakers)[0]
+    plain, _ = say_instruction(words, (1, 1, 1, 1), np.random.default_rng(3), speaker)
+    varied, _ = say_instruction(words, (1, 1, 1, 1), np.random.default_rng(3), speaker, word_gain_db=12.0)
+
+    def word_peaks(waveform):
+        frames = np.abs(waveform[: len(waveform) // 160 * 160]).reshape(-1, 160).max(axis=1)
+        loud = np.flatnonzero(frames > 0.01)
+        return [frames[run].max() for run in np.split(loud, np.flatnonzero(np.diff(loud) > 1) + 1)]
+
+    assert len(word_peaks(plain)) == len(word_peaks(varied)) == 4
+    assert np.ptp(word_peaks(plain)) < 0.01 * max(word_peaks(plain))  # the same word at the same level
+    assert 20 * np.log10(max(word_peaks(varied)) / min(word_peaks(varied))) > 3.0
+
+
 def test_spoken_words_pool_several_corpora(corpus, tmp_path):
     more = tmp_path / "more"
     speaker = _speakers("train", 4)[-1]  # a train speaker the first corpus does not have

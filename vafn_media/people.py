@@ -51,6 +51,8 @@ SPACING_RANGE: tuple[float, float] = (-0.05, 0.6)
 EMPTY_PROBABILITY: float = 0.03
 PHONE_PROBABILITY: float = 0.6
 PHONE_NOISE_PROBABILITY: float = 0.5
+#: Largest change of a word's level (dB, either way, per word) in the training items.
+WORD_GAIN_DB: float = 12.0
 
 
 def speaker_split(speaker: str) -> str:
@@ -150,7 +152,7 @@ def word_span(waveform: np.ndarray, rate: int) -> slice:
 
 
 def say_instruction(words: SpokenWords, arms: Sequence[int], rng: np.random.Generator,
-                    speaker: str | None = None) -> tuple[np.ndarray, str]:
+                    speaker: str | None = None, word_gain_db: float = 0.0) -> tuple[np.ndarray, str]:
     """A spoken instruction at SAMPLE_RATE: one recording per arm id, with pauses; returns (waveform, speaker).
 
     :param words: the split's recordings.
@@ -158,6 +160,8 @@ def say_instruction(words: SpokenWords, arms: Sequence[int], rng: np.random.Gene
     :param rng: random generator (speaker, recordings, pauses).
     :param speaker: who says it (default: a random speaker of the split); a word this speaker never said is taken
         from another speaker of the split (few people of a corpus say every word).
+    :param word_gain_db: each word louder or quieter by up to this many dB, drawn per word (training items: a reader
+        that hears one word of a command much quieter than the next must still hear it).
     """
     if speaker is None:
         speaker = list(words.speakers)[int(rng.integers(len(words.speakers)))]
@@ -171,7 +175,10 @@ def say_instruction(words: SpokenWords, arms: Sequence[int], rng: np.random.Gene
             said = words.speakers[others[int(rng.integers(len(others)))]][int(arm)]
         if position:
             pieces.append(np.zeros(int(rng.uniform(*PAUSE_RANGE) * SAMPLE_RATE), np.float32))
-        pieces.append(load_word(said[int(rng.integers(len(said)))]))
+        word = load_word(said[int(rng.integers(len(said)))])
+        if word_gain_db:
+            word = word * np.float32(10 ** (rng.uniform(-word_gain_db, word_gain_db) / 20))
+        pieces.append(word)
     pieces.append(np.zeros(int(rng.uniform(*EDGE_SILENCE_RANGE) * SAMPLE_RATE), np.float32))
     return np.concatenate(pieces).astype(np.float32), speaker
 
@@ -323,7 +330,7 @@ def people_training_data(speech_root: str | Path | Sequence[str | Path], handwri
             rng = np.random.default_rng([seed, index])
             length = 0 if rng.random() < EMPTY_PROBABILITY else int(rng.integers(1, MAX_INSTRUCTION_LENGTH + 1))
             arms = tuple(int(a) for a in rng.integers(1, NUM_ARMS + 1, length))
-            waveform, _ = say_instruction(words, arms, rng)
+            waveform, _ = say_instruction(words, arms, rng, word_gain_db=WORD_GAIN_DB)
             copies = [waveform] + [_degraded(waveform, rng) for _ in range(AUGMENTED_COPIES)]
             for store, copy in zip(audio, copies):
                 store.append(log_mel(copy, SAMPLE_RATE)[0].numpy().astype(np.float16))
