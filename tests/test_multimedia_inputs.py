@@ -272,6 +272,23 @@ def test_fusion_calibration_never_lets_fusion_lose_to_the_better_modality():
     assert calibrate_fusion([unseen_voice], (0.6, 1.0))["calibration"]["worst_margin_by_image_weight"]["1.0"] < 0
 
 
+def test_masked_readings_do_not_flatten_the_confidence_calibration():
+    import dataclasses
+
+    from vafn_media.calibration import CalibrationSet, calibrate_fusion
+    from vafn_media.decoding import calibrated, reading_confidence
+
+    right, label = _reading([0, 2, 0, 3, 0, 1, 0, 0], 0.6), (2, 3, 1)
+    wrong, soft_wrong = _reading([0, 2, 0, 3, 0, 3, 0, 0], 0.6), _reading([0, 2, 0, 3, 0, 3, 0, 0], 0.3)
+    guesses = [dataclasses.replace(wrong, masked=(4, 6))] * 30  # a hidden digit guessed as confidently as a seen one
+    seen = [right] * 30 + [soft_wrong] * 10
+    clean = CalibrationSet("clean", [right] * 40, seen, [label] * 40)
+    cutout = CalibrationSet("Cutout", [right] * 30, guesses, [label] * 30)
+    platt = calibrate_fusion([clean, cutout], (1.0,))["confidence_calibration"]["image"]
+    assert calibrated(reading_confidence(right), platt) > 0.9  # fitted on the seen readings only
+    assert calibrated(reading_confidence(soft_wrong), platt) < 0.5
+
+
 def test_condition_calibration_sets_read_training_voices_under_every_condition(generator):
     from vafn_media.augment import CONDITIONS
     from vafn_media.calibration import condition_sets

@@ -144,7 +144,7 @@ def condition_sets(generator, count: int = CONDITION_ITEMS, seed: int = CONDITIO
 
 
 def calibrate_fusion(sets: Sequence[CalibrationSet], grid: Sequence[float] = IMAGE_WEIGHT_GRID) -> dict:
-    """Fit each modality's confidence calibration on every set, then pick the image reliability weight under which
+    """Fit each modality's confidence calibration on every set's unmasked readings, then pick the image reliability weight under which
     audio-visual reading loses least against the better single modality in the worst set (the fusion must never make
     things worse), ties broken by mean accuracy, then by the more even weighting.
 
@@ -156,7 +156,11 @@ def calibrate_fusion(sets: Sequence[CalibrationSet], grid: Sequence[float] = IMA
 
     platt = {}
     for modality in MODALITIES:
-        pairs = [(r, y) for s in sets for r, y in zip(getattr(s, modality), s.labels) if r is not None]
+        # A reading of a partly masked input is flagged by its mask warning whatever its confidence; fitted with the
+        # rest, its guesses about the hidden digit flattened the image calibration until right readings of clean
+        # handwriting fell under the threshold.
+        pairs = [(r, y) for s in sets for r, y in zip(getattr(s, modality), s.labels)
+                 if r is not None and r.masked is None]
         platt[modality] = fit_platt([reading_confidence(r) for r, _ in pairs], [tuple(r.arms) == y for r, y in pairs])
     accuracy: dict[float, list[float]] = {}
     for weight in grid:
