@@ -444,6 +444,9 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit("--add-seeds adds seeds to the methods of an earlier run in --out: it needs --append")
     labels = {method.label for method in methods}
     earlier_models: dict[str, list[str]] = {}
+    if args.append and (args.out / "adaptation.json").is_file() and not (args.out / "adaptation.csv").is_file():
+        raise SystemExit(f"--append: {args.out} holds an earlier run's adaptation.json but not its per-episode "
+                         "adaptation.csv, so its methods cannot be kept; restore the CSV or drop --append")
     if args.append and (args.out / "adaptation.csv").is_file():
         previous_meta = json.loads((args.out / "adaptation.json").read_text())
         evaluated = {(method.label, seed_of(path)) for method in methods for path in method.paths}

@@ -161,6 +161,10 @@ def test_append_keeps_other_methods_and_refuses_other_tasks(study, tmp_path, mon
     with pytest.raises(SystemExit, match="other tasks"):
         study["main"]([*common[:-2], "--n-support", "9", "--out", str(out), "--append",
                        "--method", "c", "mtsac", str(models / "*.zip")])
+    (out / "adaptation.csv").unlink()  # an earlier run without its episodes: appending would silently drop a and b
+    with pytest.raises(SystemExit, match="not its per-episode"):
+        study["main"]([*common, "--method", "c", "mtsac", str(models / "*.zip"), "--append"])
+    assert [m["label"] for m in json.loads((out / "adaptation.json").read_text())["methods"]] == ["a", "b"]
 
 
 def test_title_is_kept_by_append_and_set_by_replot(study, tmp_path):

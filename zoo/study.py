@@ -133,6 +133,8 @@ DYNAMICS_PANEL = Panel(
         # K = 0: domain randomisation over the train variants; K > 0: fine-tuning it on the support set.
         StudyMethod("mtsac_variants", "mtsac", ORDER_ENV, env_kwargs=VARIANTS),
         StudyMethod("sac_variants_history4", "sac", ORDER_ENV, "zero-shot", env_kwargs={**VARIANTS, "history": 4}),
+        # Adapts in its LSTM state, inside the episode, with no gradient step.
+        StudyMethod("ppo_lstm_variants", "ppo_lstm", ORDER_ENV, "zero-shot", env_kwargs=VARIANTS),
         StudyMethod("mtsac_nominal", "mtsac", ORDER_ENV),
         StudyMethod("nominal_identify", "mtsac", ORDER_ENV, "identify", models_from="mtsac_nominal"),
         StudyMethod("nominal_identify_online", "mtsac", ORDER_ENV, "identify-online", models_from="mtsac_nominal"),
