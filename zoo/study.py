@@ -132,6 +132,9 @@ DYNAMICS_PANEL = Panel(
                     hyperparams={"env_wrapper": "vafn_gym.wrappers.DynamicsTasks", "n_support": 400}),
         # K = 0: domain randomisation over the train variants; K > 0: fine-tuning it on the support set.
         StudyMethod("mtsac_variants", "mtsac", ORDER_ENV, env_kwargs=VARIANTS),
+        StudyMethod("maml_sac_variants_second_order", "maml_sac", ORDER_ENV, env_kwargs=VARIANTS,
+                    hyperparams={"env_wrapper": "vafn_gym.wrappers.DynamicsTasks", "n_support": 400,
+                                 "second_order": True}),
         StudyMethod("sac_variants_history4", "sac", ORDER_ENV, "zero-shot", env_kwargs={**VARIANTS, "history": 4}),
         # Adapts in its LSTM state, inside the episode, with no gradient step.
         StudyMethod("ppo_lstm_variants", "ppo_lstm", ORDER_ENV, "zero-shot", env_kwargs=VARIANTS),
