@@ -289,6 +289,30 @@ def test_masked_readings_do_not_flatten_the_confidence_calibration():
     assert calibrated(reading_confidence(soft_wrong), platt) < 0.5
 
 
+def test_unseen_positions_are_what_a_masked_reading_left_out():
+    from vafn_media.decoding import unseen_positions
+
+    assert unseen_positions([2, 3, 1, 3], [2, 1, 3]) == [1]
+    assert unseen_positions([1, 1, 2], [1, 2]) == [1]  # leftmost match: the second 1 is the hidden one
+    assert unseen_positions([2, 3], [2, 3]) == [] and unseen_positions([2, 3], [3, 2]) is None
+
+
+def test_a_masked_image_confirms_what_it_saw_and_the_audio_alone_vouches_for_the_rest(generator):
+    import dataclasses
+
+    audio = _reading([0, 2, 0, 3, 0, 1, 0, 0])  # every token ~0.999
+    image = dataclasses.replace(_reading([0, 2, 0, 0, 0, 1, 0, 0]), masked=(3, 5))  # the 3 was under the mask
+    weak_seen = dataclasses.replace(audio, confidences=[0.5, *audio.confidences[1:]])
+    weak_hidden = dataclasses.replace(audio, confidences=[audio.confidences[0], 0.5, audio.confidences[2]])
+    # the weak 2 was seen by the image too: only the hidden 3 rests on the audio alone
+    assert generator.hidden_token_confidence({"audio": weak_seen, "image": image}, [2, 3, 1]) > 0.9
+    assert generator.hidden_token_confidence({"audio": weak_hidden, "image": image}, [2, 3, 1]) < 0.5
+    # the mask hid no token: a word both readings missed must not look certain, so the token-wise rule does not apply
+    nothing_hidden = dataclasses.replace(_reading([0, 2, 0, 3, 0, 1, 0, 0]), masked=(6, 7))
+    assert generator.hidden_token_confidence({"audio": weak_seen, "image": nothing_hidden}, [2, 3, 1]) is None
+    assert generator.hidden_token_confidence({"audio": weak_seen, "image": image}, [2, 1, 3]) is None  # not its reading
+
+
 def test_condition_calibration_sets_read_training_voices_under_every_condition(generator):
     from vafn_media.augment import CONDITIONS
     from vafn_media.calibration import condition_sets

@@ -144,9 +144,9 @@ def condition_sets(generator, count: int = CONDITION_ITEMS, seed: int = CONDITIO
 
 
 def calibrate_fusion(sets: Sequence[CalibrationSet], grid: Sequence[float] = IMAGE_WEIGHT_GRID) -> dict:
-    """Fit each modality's confidence calibration on every set's unmasked readings, then pick the image reliability weight under which
-    audio-visual reading loses least against the better single modality in the worst set (the fusion must never make
-    things worse), ties broken by mean accuracy, then by the more even weighting.
+    """Fit each modality's confidence calibration on every set's unmasked readings, then pick the image reliability
+    weight under which audio-visual reading loses least against the better single modality in the worst set (the
+    fusion must never make things worse), ties broken by mean accuracy, then by the more even weighting.
 
     :param sets: calibration sets (:func:`cached_sets`, :func:`condition_sets`).
     :param grid: candidate image weights (audio weight is 1).

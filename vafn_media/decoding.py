@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -147,6 +148,21 @@ def reading_confidence(reading: Decoded | Fused) -> float:
     from wrong readings of an unseen speech engine much worse.
     """
     return float(min(reading.confidences)) if reading.confidences else float(reading.weakest)
+
+
+def unseen_positions(arms: Sequence[int], seen: Sequence[int]) -> list[int] | None:
+    """Positions of ``arms`` that a partial reading ``seen`` leaves out, matching ``seen`` as a subsequence from the
+    left (None when it is not one): the tokens a masked input could not have shown.
+
+    :param arms: the full reading.
+    :param seen: the masked modality's own reading.
+    """
+    matched, j = set(), 0
+    for i, arm in enumerate(arms):
+        if j < len(seen) and seen[j] == arm:
+            matched.add(i)
+            j += 1
+    return None if j < len(seen) else [i for i in range(len(arms)) if i not in matched]
 
 
 def fuse(readings: dict[str, Decoded], decoder: torch.nn.Module, weights: dict[str, float] | None = None,

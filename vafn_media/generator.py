@@ -291,6 +291,27 @@ class InstructionGenerator:
             against.append(name)
         return against
 
+    def hidden_token_confidence(self, readings: dict, arms: list[int]) -> float | None:
+        """Calibrated confidence of ``arms`` token-wise when one modality saw everything and read ``arms``, and the
+        other was masked and read ``arms`` less some tokens: the tokens both read are confirmed, the hidden ones rest
+        on the full reading alone, so its least certain hidden token decides. None in any other case (then a masked
+        input adds no certainty; also when the mask hid no token, so a word both readings missed cannot look certain).
+
+        :param readings: modality -> greedy reading.
+        :param arms: the fused reading.
+        """
+        from vafn_media.decoding import calibrated, unseen_positions
+
+        seen = [(n, r) for n, r in readings.items() if r.masked is None]
+        masked = [r for r in readings.values() if r.masked is not None]
+        if len(seen) != 1 or len(masked) != 1 or list(seen[0][1].arms) != list(arms):
+            return None
+        name, full = seen[0]
+        hidden = unseen_positions(arms, masked[0].arms)
+        if not hidden:
+            return None
+        return min(calibrated(full.confidences[j], self.confidence_calibration.get(name)) for j in hidden)
+
     # --- public API ---
     def transcribe(self, audio: AudioSource | None = None, image: ImageSource | None = None,
                    code: str | list | Instruction | None = None, sample_rate: int | None = None) -> Transcription:
@@ -347,9 +368,10 @@ class InstructionGenerator:
         if len(readings) == 1:
             confidence = calibrated(confidence, self.confidence_calibration.get(next(iter(readings))))
         seen = {n: r for n, r in readings.items() if r.masked is None}
-        if len(seen) < len(readings) and seen:  # a masked image adds no certainty about what it could not see
-            confidence = min(confidence, max(calibrated(reading_confidence(r), self.confidence_calibration.get(n))
-                                             for n, r in seen.items()))
+        if len(seen) < len(readings) and seen:  # a masked image adds no certainty about what it could not see...
+            token_wise = self.hidden_token_confidence(readings, list(fused.arms))
+            confidence = token_wise if token_wise is not None else min(confidence, max(
+                calibrated(reading_confidence(r), self.confidence_calibration.get(n)) for n, r in seen.items()))
         low = confidence < self.low_confidence or bool(warnings)
         return Transcription(
             instruction=Instruction.from_arms(arms, n_arms=NUM_ARMS),
