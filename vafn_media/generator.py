@@ -65,7 +65,8 @@ class Transcription:
     :param instruction: the decoded instruction.
     :param confidences: per-token probability of each arm id (1.0 for machine code).
     :param confidence: sequence confidence: for one modality the calibrated probability that the reading is right,
-        from its least certain token; for several, the least certain fused token (1.0 for machine code).
+        from its least certain token; for several, the least certain fused token, where an image was masked the
+        least certain digit it could not see (1.0 for machine code).
     :param low_confidence: True when ``confidence`` is below the threshold, the input had quality warnings (clipped,
         possibly cut off, a modality dropped), or the modalities disagreed on the sequence. Treat such a result as a
         guess; :class:`MultimediaStream` does not enqueue it.
@@ -368,7 +369,7 @@ class InstructionGenerator:
         if len(readings) == 1:
             confidence = calibrated(confidence, self.confidence_calibration.get(next(iter(readings))))
         seen = {n: r for n, r in readings.items() if r.masked is None}
-        if len(seen) < len(readings) and seen:  # a masked image adds no certainty about what it could not see...
+        if len(seen) < len(readings) and seen:  # a masked image adds no certainty about what it could not see
             token_wise = self.hidden_token_confidence(readings, list(fused.arms))
             confidence = token_wise if token_wise is not None else min(confidence, max(
                 calibrated(reading_confidence(r), self.confidence_calibration.get(n)) for n, r in seen.items()))
