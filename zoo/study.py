@@ -125,16 +125,16 @@ ORDER_PANEL = Panel(
 
 #: Variants of the robot's dynamics (vafn_gym.dynamics, train / test lists): the weights, not a target, must change.
 VARIANTS = {"dynamics": "train"}
+#: MAML-SAC's tasks on that family: the variants themselves, each adapted on a 400-step support set.
+VARIANT_TASKS = {"env_wrapper": "vafn_gym.wrappers.DynamicsTasks", "n_support": 400}
 DYNAMICS_PANEL = Panel(
     "dynamics", ORDER_ENV, 1, 4,
     (
-        StudyMethod("maml_sac_variants", "maml_sac", ORDER_ENV, env_kwargs=VARIANTS,
-                    hyperparams={"env_wrapper": "vafn_gym.wrappers.DynamicsTasks", "n_support": 400}),
+        StudyMethod("maml_sac_variants", "maml_sac", ORDER_ENV, env_kwargs=VARIANTS, hyperparams=VARIANT_TASKS),
         # K = 0: domain randomisation over the train variants; K > 0: fine-tuning it on the support set.
         StudyMethod("mtsac_variants", "mtsac", ORDER_ENV, env_kwargs=VARIANTS),
         StudyMethod("maml_sac_variants_second_order", "maml_sac", ORDER_ENV, env_kwargs=VARIANTS,
-                    hyperparams={"env_wrapper": "vafn_gym.wrappers.DynamicsTasks", "n_support": 400,
-                                 "second_order": True}),
+                    hyperparams={**VARIANT_TASKS, "second_order": True}),
         StudyMethod("sac_variants_history4", "sac", ORDER_ENV, "zero-shot", env_kwargs={**VARIANTS, "history": 4}),
         # Adapts in its LSTM state, inside the episode, with no gradient step.
         StudyMethod("ppo_lstm_variants", "ppo_lstm", ORDER_ENV, "zero-shot", env_kwargs=VARIANTS),
