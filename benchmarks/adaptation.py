@@ -401,6 +401,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--add-seeds", action="store_true",
                         help="with --append: a method already in --out keeps its rows of the seeds these models do "
                              "not have (adding seeds to it); it must be evaluated as before")
+    parser.add_argument("--no-references", action="store_true",
+                        help="leave out the scripted ceiling and the random floor (rows to merge into a panel later, "
+                             "as zoo/reproduce.py's jobs do; with --append the panel's reference rows are kept)")
     parser.add_argument("--workers", type=int, default=1, help="models evaluated in parallel (one thread each)")
     parser.add_argument("--out", type=Path, default=Path("results/adaptation"), help="output folder")
     parser.add_argument("--title", default=None,
@@ -450,7 +453,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.append and (args.out / "adaptation.csv").is_file():
         previous_meta = json.loads((args.out / "adaptation.json").read_text())
         evaluated = {(method.label, seed_of(path)) for method in methods for path in method.paths}
-        replaced = set(REFERENCES) | (set() if args.add_seeds else labels)
+        replaced = (set() if args.no_references else set(REFERENCES)) | (set() if args.add_seeds else labels)
         kept = [row for row in read_rows(args.out / "adaptation.csv")
                 if row["method"] not in replaced and (row["method"], row["seed"]) not in evaluated]
         earlier = {(row["task"], row["n_support"]) for row in kept}
@@ -463,7 +466,8 @@ def main(argv: list[str] | None = None) -> None:
         title = previous_meta.get("title", "") if args.title is None else args.title
         if args.add_seeds:
             earlier_models = earlier_seed_models(methods, previous_meta["methods"])
-    rows = evaluate_references(args, tasks) + kept + evaluate_methods(methods, args, tasks)
+    references = [] if args.no_references else evaluate_references(args, tasks)
+    rows = references + kept + evaluate_methods(methods, args, tasks)
     curves = aggregate_adaptation(rows)
     summary = summary_rows(curves)
     write_csv_rows(rows, args.out / "adaptation.csv")

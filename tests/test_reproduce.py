@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 import os
 import shutil
 import subprocess
@@ -15,7 +16,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
 from zoo.reproduce import TrainJob, main as reproduce_main, write_summary  # noqa: E402
-from zoo.study import BUDGETS, HIDDEN_PANEL, PANELS  # noqa: E402
+from zoo.study import BUDGETS, HIDDEN_PANEL, PACKAGED, PANELS  # noqa: E402
 
 SUBPROCESS_ENV = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
@@ -54,6 +55,29 @@ def test_train_job_command_saves_where_the_evaluation_looks(tmp_path: Path) -> N
     assert Path(command[command.index("--save") + 1]) == job.model_path.parent
     assert job.model_path.name.endswith(f"{job.tag}_seed3.zip")
     assert method.method_fields("M")[-2:] == [json.dumps(method.env_kwargs), method.evaluation]
+    # the same job evaluates that model, for every method reading it, without the references the panel adds once
+    evaluation = job.evaluation_command()
+    assert "--no-references" in evaluation and evaluation.count(str(job.model_path)) == len(job.evaluated) >= 1
+    assert {m.label for m in job.evaluated} == {method.label} | {
+        m.label for m in HIDDEN_PANEL.methods if m.models_from == method.label}
+    inside = TrainJob(HIDDEN_PANEL, method, 3, BUDGETS["full"], REPO_ROOT / "runs" / "full")
+    assert inside.config()["log"].startswith("runs/full/"), "a record must not depend on the checkout's path"
+
+
+def test_a_packaged_policy_job_exports_a_pair_that_fig4_drives(tmp_path: Path) -> None:
+    from zoo.jobs import run_commands, write_record
+    from zoo.reproduce import PackagedJob, fig4, write_packaged
+    budget = replace(BUDGETS["smoke"], packaged_share=0.002, packaged_n_test=1)
+    job = PackagedJob(next(p for p in PACKAGED if p.algo == "sac"), budget, tmp_path / "work")
+    assert job.steps == 60 and job.job_id == "packaged_sac__VAFN-ThreeArmReach-v1"
+    result = run_commands(job.config())
+    write_record(job.work / "jobs", {"job_id": job.job_id, "status": "ok", "result": result})
+    folder = write_packaged([job], tmp_path / "results")
+    assert folder is not None
+    info = json.loads((folder / "sac__VAFN-ThreeArmReach-v1.json").read_text())
+    assert info["training_env_steps"] == 60 and info["evaluation"]["protocol"].endswith("n_test=1).evaluate")
+    assert info["commit"] and "export_pretrained.py" in info["export_command"]
+    assert fig4(budget, tmp_path / "results", folder).keys() == {"sac", "scripted"}
 
 
 def test_a_run_is_estimated_from_the_committed_training_costs(tmp_path: Path) -> None:
@@ -120,7 +144,11 @@ def test_reproduce_smoke_writes_every_artefact(tmp_path: Path) -> None:
     # packaged MAML-SAC at K = 0 and 1 (1 task)
     assert len((out / "adaptation" / "dynamics" / "adaptation.csv").read_text().splitlines()) == 1 + 12 * (3 + 2)
     costs = (out / "training_costs.csv").read_text().splitlines()
-    assert len(costs) == 1 + 4 and all(",300," in row or ",1024," in row for row in costs[1:]), costs
+    trained = [row for row in costs[1:] if not row.startswith("packaged,")]
+    assert len(trained) == 4 and all(",300," in row or ",1024," in row for row in trained), costs
+    # the packaged policies trained again (a tiny share of their steps) and exported; Fig. 4 drove the new ones
+    assert len(costs) == 1 + 4 + len(PACKAGED) and len(list((out / "pretrained").glob("*.json"))) == len(PACKAGED)
+    assert (out / "learning" / "order_success.png").is_file(), "the order panel's learning curves"
     summary = (out / "SUMMARY.md").read_text()
     assert "FAILED" not in summary and "Not produced" not in summary, summary
     assert "| maml_sac |" in summary and "| pretrained_sac |" in summary and "| scripted |" in summary

@@ -1,13 +1,18 @@
 """Independent jobs on Ray, resumable: each finished job leaves ``<folder>/<job-id>.json`` (its config, seed, commit,
-result and timings, written atomically), and a rerun skips the jobs whose record matches its config and commit.
+result and timings, written atomically by the driver), and a rerun skips the jobs whose record matches its config and
+commit.
 
 Ray is optional (the ``[ray]`` extra) and imported only when jobs run. A job is a picklable function of a JSON config
 returning a JSON-able dict; it runs on one CPU of a Ray worker, is retried by Ray when it raises or its worker dies
-(``max_retries``), and is reported as failed (never dropped) once its retries are spent.
+(``max_retries``), and is reported as failed (never dropped) once its retries are spent. The record travels back
+through Ray and is written where the driver runs, so workers on other machines need no shared file system, and a
+folder of records is all a later run (on another machine too) needs to resume: :func:`run_commands` returns the
+contents of the files a job makes, not their paths.
 """
 
 from __future__ import annotations
 
+import base64
 import json
 import os
 import socket
@@ -99,17 +104,15 @@ def write_record(folder: Path, record: dict[str, Any]) -> Path:
     return atomic_write(record_path(folder, record["job_id"]), write)
 
 
-def execute(fn: JobFn, job_id: str, config: dict[str, Any], folder: str, commit: str) -> dict[str, Any]:
-    """Run one job where it is called (a Ray worker) and write its record; its exceptions propagate to Ray."""
+def execute(fn: JobFn, job_id: str, config: dict[str, Any], commit: str) -> dict[str, Any]:
+    """Run one job where it is called (a Ray worker) and return its record; its exceptions propagate to Ray."""
     started, wall, cpu = time.time(), time.perf_counter(), os.times()
     result = fn(config)
     end = os.times()
     cpu_s = sum(getattr(end, k) - getattr(cpu, k) for k in ("user", "system", "children_user", "children_system"))
-    record = {"job_id": job_id, "status": "ok", "config": config, "seed": config.get("seed"), "commit": commit,
-              "result": result, "started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(started)),
-              "wall_s": time.perf_counter() - wall, "cpu_s": cpu_s, "host": socket.gethostname(), "pid": os.getpid()}
-    write_record(Path(folder), record)
-    return record
+    return {"job_id": job_id, "status": "ok", "config": config, "seed": config.get("seed"), "commit": commit,
+            "result": result, "started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(started)),
+            "wall_s": time.perf_counter() - wall, "cpu_s": cpu_s, "host": socket.gethostname(), "pid": os.getpid()}
 
 
 def run_jobs(fn: JobFn, jobs: Iterable[tuple[str, dict[str, Any]]], folder: Path, *, commit: str | None = None,
@@ -137,11 +140,12 @@ def run_jobs(fn: JobFn, jobs: Iterable[tuple[str, dict[str, Any]]], folder: Path
         while queue or pending:
             while queue and (max_in_flight is None or len(pending) < max_in_flight):
                 job_id, config = queue.pop()
-                pending[remote.remote(fn, job_id, config, str(folder), commit)] = (job_id, config)
+                pending[remote.remote(fn, job_id, config, commit)] = (job_id, config)
             ready, _ = ray.wait(list(pending), num_returns=1)
             job_id, config = pending.pop(ready[0])
             try:
                 record = ray.get(ready[0])
+                write_record(folder, record)
                 report.done.append(record)
             except ray.exceptions.RayError as error:  # retries spent: the job raised, or its worker died
                 lines = str(error).strip().splitlines() or [type(error).__name__]
@@ -157,17 +161,47 @@ def run_jobs(fn: JobFn, jobs: Iterable[tuple[str, dict[str, Any]]], folder: Path
     return report
 
 
-def run_command(config: dict[str, Any]) -> dict[str, Any]:
-    """A job that runs ``config["command"]`` (``python`` = this interpreter) from the repository root into
-    ``config["log"]`` and must leave ``config["output"]`` (removed first); raises when it does not."""
-    command = [sys.executable if part == "python" else part for part in config["command"]]
-    output, log = Path(config["output"]), Path(config["log"])
-    output.unlink(missing_ok=True)
-    output.parent.mkdir(parents=True, exist_ok=True)
+def file_text(path: Path) -> str:
+    """A job's output file as record text: UTF-8 text as it is, anything else (a zip) as ``base64:`` and its bytes."""
+    data = path.read_bytes()
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        return "base64:" + base64.b64encode(data).decode("ascii")
+
+
+def write_file_text(text: str, path: Path) -> Path:
+    """Write a :func:`file_text` back to ``path`` (atomically)."""
+    data = base64.b64decode(text[len("base64:"):]) if text.startswith("base64:") else text.encode("utf-8")
+
+    def write(tmp: Path) -> None:
+        tmp.write_bytes(data)
+
+    return atomic_write(Path(path), write)
+
+
+def run_commands(config: dict[str, Any]) -> dict[str, Any]:
+    """A job that runs each of ``config["commands"]`` in turn (``python`` = this interpreter) from the repository root
+    into ``config["log"]``, must leave every file of ``config["outputs"]`` (removed first), and returns
+    ``{"files": {name: file_text}}`` of ``config["collect"]`` (``{name: path}``); raises when a command fails.
+    Relative paths are the repository root's, as the commands see them."""
+    outputs, log = [REPO_ROOT / path for path in config["outputs"]], REPO_ROOT / config["log"]
+    for output in outputs:
+        output.unlink(missing_ok=True)
+        output.parent.mkdir(parents=True, exist_ok=True)
     log.parent.mkdir(parents=True, exist_ok=True)
     with log.open("w") as handle:
-        result = subprocess.run(command, cwd=REPO_ROOT, stdout=handle, stderr=subprocess.STDOUT,
-                                env={**os.environ, "OMP_NUM_THREADS": "1"})
-    if result.returncode != 0 or not output.is_file():
-        raise RuntimeError(f"exit {result.returncode}, see {log}")
-    return {"output": str(output), "log": str(log)}
+        for command in config["commands"]:
+            command = [sys.executable if part == "python" else part for part in command]
+            handle.write(f"$ {' '.join(command)}\n")
+            handle.flush()
+            result = subprocess.run(command, cwd=REPO_ROOT, stdout=handle, stderr=subprocess.STDOUT,
+                                    env={**os.environ, "OMP_NUM_THREADS": "1"})
+            if result.returncode != 0:
+                raise RuntimeError(f"exit {result.returncode} of {command[1] if len(command) > 1 else command}, "
+                                   f"see {log}")
+    missing = [str(output) for output in outputs if not output.is_file()]
+    if missing:
+        raise RuntimeError(f"no {', '.join(missing)}, see {log}")
+    return {"files": {name: file_text(REPO_ROOT / path) for name, path in config.get("collect", {}).items()},
+            "log": config["log"]}

@@ -57,7 +57,10 @@ from zoo.study import (  # noqa: E402
     HIDDEN_ENV,
     ORDER_ENV,
     PANELS,
+    CURVES_PANEL,
+    PACKAGED,
     Budget,
+    PackagedPolicy,
     Panel,
     StudyMethod,
     support_budget,
@@ -76,15 +79,46 @@ def run_script(command: list[str], **kwargs: Any) -> subprocess.CompletedProcess
     return subprocess.run(command, cwd=REPO_ROOT, env={**os.environ, "OMP_NUM_THREADS": "1"}, **kwargs)
 
 
-# --- training: benchmarks/learning.py, one process per (method, seed) ---
+# --- jobs: benchmarks/learning.py, then benchmarks/adaptation.py on the model, one job per (method, seed) ---
 def model_dir(work: Path, panel: Panel, method: StudyMethod) -> Path:
-    """Where the models of one method of one panel are saved (one per seed), and where its evaluation finds them."""
+    """Where the models of one method of one panel are saved (one per seed)."""
     return work / "models" / panel.name / (method.models_from or method.label)
+
+
+def portable(path: Path) -> Path:
+    """``path`` relative to the repository root when it lies inside it (so a job's config, and whether a later run may
+    reuse its record, do not depend on where the repository is checked out), else as it is."""
+    try:
+        return Path(path).resolve().relative_to(REPO_ROOT)
+    except ValueError:
+        return Path(path)
+
+
+def panel_arguments(panel: Panel, budget: Budget) -> list[str]:
+    """``benchmarks/adaptation.py``'s flags of a panel: the one protocol every method of it is evaluated with."""
+    what = (f"{budget.name} mode: {budget.timesteps} training steps per method and seed"
+            + (", plus the packaged checkpoints (pretrained_*)" if budget.pretrained else ""))
+    arguments = ["--env", panel.env_id, "--min-length", str(panel.min_length), "--max-length", str(panel.max_length),
+                 "--n-tasks", str(min(panel.n_tasks or budget.n_tasks, budget.n_tasks)),
+                 "--k", *map(str, budget.k_values if panel.over_k else (0,)),
+                 "--n-support", str(budget.n_support), "--title", what]
+    if panel.dynamics is not None:
+        arguments += ["--dynamics", panel.dynamics]
+    return arguments
+
+
+def trusted_flag(methods: list[StudyMethod]) -> list[str]:
+    """``--trust-remote-code`` where a method's models are SB3 zips (an algorithm without a weights-only format) that
+    this run made itself, else nothing."""
+    from vafn_sb3.registry import ALGORITHMS
+
+    return ["--trust-remote-code"] if any(not ALGORITHMS[method.algo].weights for method in methods) else []
 
 
 @dataclass(frozen=True)
 class TrainJob:
-    """One method of one panel trained for one seed by ``benchmarks/learning.py``."""
+    """One method of one panel trained for one seed by ``benchmarks/learning.py``, then its model evaluated by
+    ``benchmarks/adaptation.py`` as the panel evaluates it (and as every method evaluating its models does)."""
 
     panel: Panel
     method: StudyMethod
@@ -100,7 +134,7 @@ class TrainJob:
     @property
     def model_dir(self) -> Path:
         """Where this method's models (one per seed) are saved."""
-        return model_dir(self.work, self.panel, self.method)
+        return model_dir(portable(self.work), self.panel, self.method)
 
     @property
     def name(self) -> str:
@@ -113,39 +147,143 @@ class TrainJob:
         return self.model_dir / f"{self.name}_seed{self.seed}.zip"
 
     @property
+    def folder(self) -> Path:
+        """This job's own outputs: its learning curve (``learning/``) and its evaluation (``eval/``)."""
+        return portable(self.work) / "job_outputs" / self.job_id
+
+    @property
     def curves_path(self) -> Path:
-        """learning.py's curves file of this method (every seed's rows)."""
-        return self.work / "learning" / f"{self.name}_curves.csv"
+        """learning.py's curves file of this seed."""
+        return self.folder / "learning" / f"{self.name}_curves.csv"
 
     @property
     def log_path(self) -> Path:
-        """stdout and stderr of the training process."""
-        return self.work / "logs" / f"{self.panel.name}_{self.method.label}_seed{self.seed}.log"
+        """stdout and stderr of the job's processes."""
+        return portable(self.work) / "logs" / f"{self.panel.name}_{self.method.label}_seed{self.seed}.log"
 
     @property
     def job_id(self) -> str:
         """The name of its Ray job and of its record ``<work>/jobs/<job_id>.json``."""
         return f"train_{self.panel.name}_{self.method.label}_seed{self.seed}"
 
+    @property
+    def evaluated(self) -> list[StudyMethod]:
+        """The panel's methods that evaluate this model: the method itself and those reading its models."""
+        return [m for m in self.panel.methods if self.method.label in (m.label, m.models_from)]
+
     def config(self) -> dict[str, Any]:
-        """Its job's config for ``zoo.jobs.run_command`` (``python``: the worker's interpreter); a rerun skips the job
-        only when its record holds the same config."""
+        """Its job's config for ``zoo.jobs.run_commands`` (``python``: the worker's interpreter); a rerun skips the
+        job only when its record holds the same config (paths are relative to the repository where they lie in it)."""
+        eval_dir = self.folder / "eval"
         return {"panel": self.panel.name, "method": self.method.label, "algo": self.method.algo, "seed": self.seed,
-                "command": ["python", *self.command()[1:]], "output": str(self.model_path), "log": str(self.log_path)}
+                "commands": [["python", *self.command()[1:]], ["python", *self.evaluation_command()[1:]]],
+                "outputs": [str(self.model_path), str(eval_dir / "adaptation.csv")], "log": str(self.log_path),
+                "collect": {"curves": str(self.curves_path), "adaptation.csv": str(eval_dir / "adaptation.csv"),
+                            "adaptation.json": str(eval_dir / "adaptation.json")}}
 
     def command(self) -> list[str]:
         """learning.py's arguments: the mode's step budget, one final evaluation, the model kept."""
         steps = self.budget.timesteps
+        every = self.budget.curve_every if self.panel.name == CURVES_PANEL and self.budget.curve_every else steps
         command = [sys.executable, "benchmarks/learning.py", "--algo", self.method.algo, "--env", self.method.train_env,
                    "--seeds", str(self.seed), "--steps", str(steps),
-                   "--train-max-length", str(self.budget.train_max_length), "--eval-every", str(steps),
-                   "--n-test", str(self.budget.n_tasks), "--out", str(self.work / "learning"),
-                   "--tag", self.tag, "--save", str(self.model_dir), "--append"]
+                   "--train-max-length", str(self.budget.train_max_length), "--eval-every", str(every),
+                   "--n-eval", str(self.budget.n_tasks), "--n-test", str(self.budget.n_tasks),
+                   "--out", str(self.folder / "learning"),
+                   "--tag", self.tag, "--save", str(self.model_dir)]
         if self.method.env_kwargs:
             command += ["--env-kwargs", json.dumps(self.method.env_kwargs)]
         if self.method.hyperparams:
             command += ["--hyperparams", json.dumps(self.method.hyperparams)]
         return command
+
+    def evaluation_command(self) -> list[str]:
+        """adaptation.py on this model for every method that evaluates it, without the references (the panel adds
+        them once), into this job's ``eval/``."""
+        command = [sys.executable, "benchmarks/adaptation.py", *panel_arguments(self.panel, self.budget),
+                   "--no-references", "--out", str(self.folder / "eval"), *trusted_flag(self.evaluated)]
+        for method in self.evaluated:
+            command += ["--method", *method.method_fields(str(self.model_path))]
+        return command
+
+
+@dataclass(frozen=True)
+class PackagedJob:
+    """One packaged policy trained again by ``benchmarks/learning.py`` and exported with its held-out evaluation by
+    ``benchmarks/export_pretrained.py``; its record carries the exported pair."""
+
+    policy: PackagedPolicy
+    budget: Budget
+    work: Path
+
+    @property
+    def job_id(self) -> str:
+        """The name of its Ray job and of its record."""
+        return f"packaged_{self.policy.label}"
+
+    @property
+    def folder(self) -> Path:
+        """This job's own outputs (``learning/``, ``model/``, ``pretrained/``)."""
+        return portable(self.work) / "job_outputs" / self.job_id
+
+    @property
+    def steps(self) -> int:
+        """Its env steps: the budget's share of the shipped policy's own."""
+        return max(1, round(self.policy.timesteps * self.budget.packaged_share))
+
+    @property
+    def stem(self) -> str:
+        """learning.py's file stem."""
+        return f"{self.policy.algo}_{self.policy.env_id.split('/')[-1]}_packaged"
+
+    def config(self) -> dict[str, Any]:
+        """Its job's config for ``zoo.jobs.run_commands``."""
+        policy, folder = self.policy, self.folder
+        model = folder / "model" / f"{self.stem}_seed{policy.seed}.zip"
+        train = ["python", "benchmarks/learning.py", "--algo", policy.algo, "--env", policy.env_id, "--seeds",
+                 str(policy.seed), "--steps", str(self.steps), "--train-max-length", str(policy.train_max_length),
+                 "--eval-every", str(self.steps), "--n-test", str(self.budget.packaged_n_test),
+                 "--out", str(folder / "learning"), "--tag", "_packaged", "--save", str(folder / "model")]
+        if policy.hyperparams:
+            train += ["--hyperparams", json.dumps(policy.hyperparams)]
+        export = ["python", "benchmarks/export_pretrained.py", "--algo", policy.algo, "--env", policy.env_id,
+                  "--model", str(model), "--summary", str(folder / "learning" / f"{self.stem}_summary.json"),
+                  "--seed", str(policy.seed), "--n-test", str(self.budget.packaged_n_test),
+                  "--out", str(folder / "pretrained")]
+        from vafn_sb3.pretrained import pretrained_path
+
+        shipped = pretrained_path(policy.algo, policy.env_id).with_suffix(".json")
+        note = json.loads(shipped.read_text()).get("note") if shipped.is_file() else None
+        if note:
+            export += ["--note", note]
+        exported = folder / "pretrained" / policy.label
+        return {"packaged": policy.label, "seed": policy.seed, "commands": [train, export],
+                "outputs": [str(exported.with_suffix(".zip")), str(exported.with_suffix(".json"))],
+                "log": str(portable(self.work) / "logs" / f"{self.job_id}.log"),
+                "collect": {"zip": str(exported.with_suffix(".zip")), "json": str(exported.with_suffix(".json")),
+                            "curves": str(folder / "learning" / f"{self.stem}_curves.csv")}}
+
+
+def packaged_jobs(budget: Budget, work: Path) -> list[PackagedJob]:
+    """The packaged policies the mode trains again (none unless ``budget.packaged_share``)."""
+    return [PackagedJob(policy, budget, work) for policy in PACKAGED] if budget.packaged_share else []
+
+
+def write_packaged(jobs: list[PackagedJob], out: Path) -> Path | None:
+    """Write every finished packaged job's exported pair into ``out/pretrained`` (what a maintainer copies into
+    ``vafn_sb3/pretrained``); returns the folder, or None when no job finished."""
+    from zoo.jobs import read_record, write_file_text
+
+    folder = out / "pretrained"
+    written = False
+    for job in jobs:
+        record = read_record(job.work / "jobs", job.job_id)
+        if record is None or record.get("status") != "ok":
+            continue
+        for suffix in ("zip", "json"):
+            write_file_text(record["result"]["files"][suffix], folder / f"{job.policy.label}.{suffix}")
+        written = True
+    return folder if written else None
 
 
 def train_jobs(budget: Budget, panels: tuple[Panel, ...], work: Path) -> list[TrainJob]:
@@ -173,10 +311,22 @@ def measured_cpu_per_step(root: Path = REPO_ROOT) -> dict[tuple[str, str], float
     return {key: float(np.median(values)) for key, values in samples.items()}
 
 
-def estimated_cpu_s(job: TrainJob, per_step: dict[tuple[str, str], float]) -> float:
+Job = TrainJob | PackagedJob
+
+
+def job_labels(job: Job) -> tuple[str, str, str, int]:
+    """``(panel, method, algo, seed)`` of a job (``packaged`` and the policy's stem for a packaged policy)."""
+    if isinstance(job, PackagedJob):
+        return "packaged", job.policy.label, job.policy.algo, job.policy.seed
+    return job.panel.name, job.method.label, job.method.algo, job.seed
+
+
+def estimated_cpu_s(job: Job, per_step: dict[tuple[str, str], float]) -> float:
     """CPU seconds a job should take: its method's measured rate, else its algorithm's, else a default."""
-    rate = per_step.get((job.panel.name, job.method.label), per_step.get(("", job.method.algo)))
-    return job.budget.timesteps * (UNMEASURED_CPU_S_PER_STEP if rate is None else rate)
+    panel, label, algo, _ = job_labels(job)
+    rate = per_step.get((panel, label), per_step.get(("", algo)))
+    steps = job.steps if isinstance(job, PackagedJob) else job.budget.timesteps
+    return steps * (UNMEASURED_CPU_S_PER_STEP if rate is None else rate)
 
 
 def makespan(costs: list[float], n_workers: int) -> float:
@@ -187,11 +337,11 @@ def makespan(costs: list[float], n_workers: int) -> float:
     return max(finish)
 
 
-def run_training(jobs: list[TrainJob], n_workers: int, address: str | None = None) -> list[dict[str, Any]]:
-    """Train every job not finished at this commit as Ray jobs (``zoo.jobs``), ``n_workers`` at a time, the longest
-    first (by the committed costs, which also drive the progress bar and the estimate printed before it starts), each
-    retried by Ray if it fails or its worker dies; one record per job, failed ones with their error."""
-    from zoo.jobs import git_commit, is_finished, read_record, run_command, run_jobs, start_ray
+def run_training(jobs: list[Job], n_workers: int, address: str | None = None) -> list[dict[str, Any]]:
+    """Run every job not finished at this commit on Ray (``zoo.jobs``), ``n_workers`` at a time, the longest first (by
+    the committed costs, which also drive the progress bar and the estimate printed before it starts), each retried by
+    Ray if it fails or its worker dies; one row per job, failed ones with their error."""
+    from zoo.jobs import git_commit, is_finished, read_record, run_commands, run_jobs, start_ray
 
     if not jobs:
         return []
@@ -201,7 +351,7 @@ def run_training(jobs: list[TrainJob], n_workers: int, address: str | None = Non
     ordered = sorted(jobs, key=lambda job: -cost[job.job_id])
     todo = [cost[job.job_id] for job in ordered if cost[job.job_id] > 0]
     if todo:
-        print(f"training {len(todo)} jobs ({len(jobs) - len(todo)} already trained at this commit): about "
+        print(f"training {len(todo)} jobs ({len(jobs) - len(todo)} already done at this commit): about "
               f"{sum(todo) / 3600:.1f} CPU-h by the committed costs, about {makespan(todo, n_workers) / 3600:.1f} h "
               f"with {n_workers} job(s) at a time on free cores as fast as theirs")
     ray = start_ray(address, None if address else n_workers)
@@ -212,7 +362,7 @@ def run_training(jobs: list[TrainJob], n_workers: int, address: str | None = Non
             progress.update(round(cost[record["job_id"]]))
 
         try:
-            report = run_jobs(run_command, [(job.job_id, job.config()) for job in ordered], folder, commit=commit,
+            report = run_jobs(run_commands, [(job.job_id, job.config()) for job in ordered], folder, commit=commit,
                               max_in_flight=n_workers, on_record=done)
         finally:
             ray.shutdown()
@@ -221,28 +371,62 @@ def run_training(jobs: list[TrainJob], n_workers: int, address: str | None = Non
     rows = []
     for job in jobs:
         record, reused = by_id[job.job_id]
-        rows.append({"panel": job.panel.name, "method": job.method.label, "seed": job.seed, "reused": reused,
-                     "error": record.get("error", ""), "wall_s": record.get("wall_s"), "cpu_s": record.get("cpu_s")})
+        panel, label, _, seed = job_labels(job)
+        rows.append({"panel": panel, "method": label, "seed": seed, "reused": reused, "error": record.get("error", ""),
+                     "wall_s": record.get("wall_s"), "cpu_s": record.get("cpu_s")})
     return rows
 
 
-def training_costs(jobs: list[TrainJob]) -> list[dict[str, Any]]:
+def job_file(job: Job, name: str) -> str | None:
+    """The text of one file a finished job collected (``curves``, ``adaptation.csv``, ``adaptation.json``), or None."""
+    from zoo.jobs import read_record
+
+    record = read_record(job.work / "jobs", job.job_id)
+    if record is None or record.get("status") != "ok":
+        return None
+    return record["result"]["files"].get(name)
+
+
+def csv_text_rows(text: str | None) -> list[dict[str, str]]:
+    """The rows of a CSV file's text (none for None)."""
+    return list(csv.DictReader(text.splitlines())) if text else []
+
+
+def training_costs(jobs: list[Job]) -> list[dict[str, Any]]:
     """Per job: env steps, wall and CPU seconds (training and its final check), success on the training env."""
-    curves: dict[Path, list[dict[str, str]]] = {}  # one file holds every seed of a method: read it once
-    for path in {job.curves_path for job in jobs if job.curves_path.is_file()}:
-        with path.open(newline="") as handle:
-            curves[path] = list(csv.DictReader(handle))
     rows = []
     for job in jobs:
-        final = [row for row in curves.get(job.curves_path, []) if int(row["seed"]) == job.seed][-1:]
-        rows += [{"panel": job.panel.name, "method": job.method.label, "algo": job.method.algo,
-                  "env": job.method.train_env, "seed": job.seed, "timesteps": int(row["timesteps"]),
+        panel, label, algo, seed = job_labels(job)
+        env = job.policy.env_id if isinstance(job, PackagedJob) else job.method.train_env
+        final = [row for row in csv_text_rows(job_file(job, "curves")) if int(row["seed"]) == seed][-1:]
+        rows += [{"panel": panel, "method": label, "algo": algo, "env": env, "seed": seed,
+                  "timesteps": int(row["timesteps"]),
                   "wall_s": float(row["wall_s"]), "cpu_s": float(row["cpu_s"]),
                   "train_env_success": float(row["success"])} for row in final]
     return rows
 
 
-# --- evaluation: benchmarks/adaptation.py, one call per panel ---
+def learning_curves(jobs: list[TrainJob], out: Path) -> list[Path]:
+    """Success, collision and return against env steps of the ``CURVES_PANEL`` jobs (mean ± 95 % CI over seeds; held-
+    out validation instructions during training, the test ones at the end) as PNGs and CSV in ``out/learning``."""
+    from zoo.plot import Curve, make_plots
+
+    curves: dict[str, dict[str, list[Curve]]] = {"success": {}, "collision": {}, "return": {}}
+    panel = ""
+    for job in jobs:
+        rows = [row for row in csv_text_rows(job_file(job, "curves")) if int(row["seed"]) == job.seed]
+        if job.panel.name != CURVES_PANEL or len(rows) < 2:
+            continue
+        panel = f"{job.panel.name} panel ({job.panel.env_id})"
+        steps = np.array([float(row["timesteps"]) for row in rows])
+        for metric, runs in curves.items():
+            runs.setdefault(job.method.label, []).append(Curve(steps, np.array([float(row[metric]) for row in rows])))
+    if not panel:
+        return []
+    return make_plots(curves, out / "learning" / CURVES_PANEL, f"Learning curves, {panel}")
+
+
+# --- evaluation: a panel's job rows, plus the references (and packaged checkpoints) in one adaptation.py call ---
 def pretrained_methods(panel: Panel) -> list[StudyMethod]:
     """The packaged checkpoints a panel evaluates: those of its env, and goal-observing ones through inference."""
     from vafn_sb3 import available_pretrained
@@ -259,37 +443,43 @@ def pretrained_methods(panel: Panel) -> list[StudyMethod]:
     return methods
 
 
-def evaluate_panel(panel: Panel, budget: Budget, work: Path, out: Path, n_workers: int) -> dict[str, Any]:
-    """Run ``benchmarks/adaptation.py`` on one panel with every trained (and packaged) model; returns its status."""
-    from vafn_sb3.pretrained import pretrained_path
-    from vafn_sb3.registry import ALGORITHMS
+def merge_job_evaluations(jobs: list[TrainJob], folder: Path) -> bool:
+    """Write the finished jobs' rows into ``folder/adaptation.csv`` and their methods (models of every seed) into
+    ``folder/adaptation.json``, for adaptation.py's ``--append``; False when no job of the panel finished."""
+    rows, methods, meta = [], {}, None
+    for job in jobs:
+        text = job_file(job, "adaptation.json")
+        if text is None:
+            continue
+        meta = json.loads(text)
+        rows += csv_text_rows(job_file(job, "adaptation.csv"))
+        for method in meta["methods"]:
+            merged = methods.setdefault(method["label"], {**method, "models": []})
+            merged["models"] += method["models"]
+    if meta is None or not rows:
+        return False
+    write_csv_rows(rows, folder / "adaptation.csv")
+    (folder / "adaptation.json").write_text(json.dumps({**meta, "methods": list(methods.values())}, indent=2))
+    return True
 
-    fields, own_sb3_zips = [], False
-    for method in panel.methods:
-        folder = model_dir(work, panel, method)
-        if any(folder.glob("*_seed*.zip")):
-            fields.append(method.method_fields(str(folder / "*_seed*.zip")))
-            # learning.py saves weights only where the algorithm has that format; else an SB3 zip this run made itself
-            own_sb3_zips |= not ALGORITHMS[method.algo].weights
-    if budget.pretrained:
-        for method in pretrained_methods(panel):
-            fields.append(method.method_fields(str(pretrained_path(method.algo, method.train_env))))
-    if not fields:
+
+def evaluate_panel(panel: Panel, budget: Budget, work: Path, out: Path, n_workers: int) -> dict[str, Any]:
+    """One panel's results: the rows its jobs evaluated, the scripted ceiling and random floor (and in ``--quick`` the
+    packaged checkpoints) from one ``benchmarks/adaptation.py --append`` call; returns its status."""
+    from vafn_sb3.pretrained import pretrained_path
+
+    folder = out / "adaptation" / panel.name
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in ("adaptation.csv", "adaptation.json"):  # a stale panel of another run must not be appended to
+        (folder / name).unlink(missing_ok=True)
+    trained = merge_job_evaluations(train_jobs(budget, (panel,), work), folder)
+    packaged = pretrained_methods(panel) if budget.pretrained else []
+    if not trained and not packaged:
         return {"ok": False, "message": "no trained model"}
-    what = (f"{budget.name} mode: {budget.timesteps} training steps per method and seed"
-            + (", plus the packaged checkpoints (pretrained_*)" if budget.pretrained else ""))
-    command = [sys.executable, "benchmarks/adaptation.py", "--env", panel.env_id,
-               "--min-length", str(panel.min_length), "--max-length", str(panel.max_length),
-               "--n-tasks", str(min(panel.n_tasks or budget.n_tasks, budget.n_tasks)),
-               "--k", *map(str, budget.k_values if panel.over_k else (0,)),
-               "--n-support", str(budget.n_support), "--workers", str(n_workers),
-               "--out", str(out / "adaptation" / panel.name), "--title", what]
-    if panel.dynamics is not None:
-        command += ["--dynamics", panel.dynamics]
-    for method in fields:
-        command += ["--method", *method]
-    if own_sb3_zips:
-        command.append("--trust-remote-code")
+    command = [sys.executable, "benchmarks/adaptation.py", *panel_arguments(panel, budget), "--append",
+               "--workers", str(n_workers), "--out", str(folder)]
+    for method in packaged:
+        command += ["--method", *method.method_fields(str(portable(pretrained_path(method.algo, method.train_env))))]
     result = run_script(command, capture_output=True, text=True)
     return {"ok": result.returncode == 0, "message": (result.stdout + result.stderr)[-2000:]}
 
@@ -363,19 +553,25 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(edges[::2], edges[1::2]))
 
 
-def fig4(budget: Budget, out: Path) -> dict[str, Any]:
-    """Fig. 4 for every packaged pretrained policy of the stream's world and for the scripted ceiling."""
+def fig4(budget: Budget, out: Path, pretrained: Path | None = None) -> dict[str, Any]:
+    """Fig. 4 for every packaged policy of the stream's world (those in ``pretrained``, a folder of exported pairs,
+    else the package's) and for the scripted ceiling."""
     import gymnasium as gym
 
     from vafn_gym import ScriptedController
-    from vafn_sb3 import available_pretrained, load_pretrained
+    from vafn_sb3 import available_pretrained, load_pretrained, load_weights
 
     probe = gym.make(FIG4_ENV)
     runs: list[tuple[str, Any, int]] = [("scripted", ScriptedController.for_env(probe), 0)]
     probe.close()
-    for algo, env_id in available_pretrained():
+    if pretrained is not None:
+        pairs = [(info["algo"], info["env_id"], path.with_suffix(".zip")) for path in sorted(pretrained.glob("*.json"))
+                 for info in [json.loads(path.read_text())]]
+    else:
+        pairs = [(algo, env_id, None) for algo, env_id in available_pretrained()]
+    for algo, env_id, path in pairs:
         if env_id == ORDER_ENV:  # the stream's world: default targets, inactive arms held
-            model = load_pretrained(algo, env_id)
+            model = load_pretrained(algo, env_id) if path is None else load_weights(path)
             runs.insert(0, (algo, model, int(getattr(model, "inner_steps", 0))))
     outcomes = {}
     for name, policy, k in runs:
@@ -610,10 +806,14 @@ def main(argv: list[str] | None = None) -> Path:
     times: dict[str, float] = {"load": os.getloadavg()[0]}
     start = time.perf_counter()
     jobs = train_jobs(budget, panels, work)
-    records = run_training(jobs, n_workers, args.address)
-    costs = training_costs(train_jobs(budget, PANELS, work))  # also the panels an earlier run here trained
+    packaged = packaged_jobs(budget, work) if args.panels is None else []
+    records = run_training([*jobs, *packaged], n_workers, args.address)
+    # also the panels an earlier run here trained
+    costs = training_costs([*train_jobs(budget, PANELS, work), *packaged_jobs(budget, work)])
     if costs:
         write_csv_rows(costs, out / "training_costs.csv")
+    learning_curves(jobs, out)
+    pretrained = write_packaged(packaged, out)
     times["train"] = time.perf_counter() - start
 
     start = time.perf_counter()
@@ -625,7 +825,7 @@ def main(argv: list[str] | None = None) -> Path:
     times["evaluate"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    fig4(budget, out)
+    fig4(budget, out, pretrained)
     times["fig4"] = time.perf_counter() - start
 
     start = time.perf_counter()

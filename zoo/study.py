@@ -150,6 +150,38 @@ DYNAMICS_PANEL = Panel(
 
 #: The panels of the study, in the order of SUMMARY.md.
 PANELS: tuple[Panel, ...] = (HIDDEN_PANEL, ORDER_PANEL, DYNAMICS_PANEL)
+#: The panel whose jobs also evaluate every ``Budget.curve_every`` steps: the learning curves of ``--full``.
+CURVES_PANEL = ORDER_PANEL.name
+
+
+@dataclass(frozen=True)
+class PackagedPolicy:
+    """One packaged policy of ``vafn_sb3/pretrained``: how ``--full`` trains and exports it again (its note, if it
+    ships one, is read from the packaged JSON)."""
+
+    algo: str
+    env_id: str
+    seed: int
+    timesteps: int
+    train_max_length: int = 3
+    hyperparams: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def label(self) -> str:
+        """``<algo>__<EnvName>``, the packaged files' stem."""
+        return f"{self.algo}__{self.env_id.replace('/', '-')}"
+
+
+#: The packaged policies, with the seed and budget each shipped one was trained with.
+PACKAGED: tuple[PackagedPolicy, ...] = (
+    PackagedPolicy("sac", ORDER_ENV, 0, 30_000),
+    PackagedPolicy("maml_sac", ORDER_ENV, 1, 40_000),
+    PackagedPolicy("maml_sac", HIDDEN_ENV, 0, 50_000, train_max_length=2),
+    PackagedPolicy("mtsac", HIDDEN_ENV, 0, 50_000, train_max_length=2),
+    PackagedPolicy("mappo", GOAL_ENV, 2, 100_000, train_max_length=2,
+                   hyperparams={"env_wrapper": "vafn_gym.wrappers.GoalDetours"}),
+    PackagedPolicy("mtsac", GOAL_ENV, 3, 150_000, train_max_length=2),
+)
 
 
 @dataclass(frozen=True)
@@ -169,13 +201,22 @@ class Budget:
     fig4_steps: int = 2000
     #: ``benchmarks/instruction_table.py`` arguments (Table 1).
     table1_args: tuple[str, ...] = ()
+    #: Env steps between held-out evaluations of the ``CURVES_PANEL`` jobs (None: only the final one).
+    curve_every: int | None = None
+    #: Train and export the packaged policies (``PACKAGED``) again, with this share of each one's own steps (0: not
+    #: at all); Fig. 4 then drives the new ones.
+    packaged_share: float = 0.0
+    #: Held-out instructions each exported policy is evaluated on (its JSON's number).
+    packaged_n_test: int = 100
 
 
 BUDGETS: dict[str, Budget] = {
     "smoke": Budget("smoke", (0,), 300, 1, 1, (0, 1), 40, pretrained=True, fig4_steps=200,
                     table1_args=("--seeds", "1", "--items", "2", "--in-distribution", "0", "--transfer-items", "0",
-                                 "--workers", "1", "--robust-items", "5", "--camera-items", "5")),
+                                 "--workers", "1", "--robust-items", "5", "--camera-items", "5"),
+                    curve_every=150, packaged_share=0.002, packaged_n_test=1),
     "quick": Budget("quick", (0,), 3000, 2, 5, (0, 1, 10), 200, pretrained=True,
                     table1_args=("--seeds", "1", "--items", "20", "--in-distribution", "0", "--transfer-items", "0")),
-    "full": Budget("full", (0, 1, 2, 3, 4), 50_000, 2, 15, (0, 1, 2, 5, 10, 20, 50), 400),
+    "full": Budget("full", (0, 1, 2, 3, 4), 50_000, 2, 15, (0, 1, 2, 5, 10, 20, 50), 400, curve_every=5_000,
+                   packaged_share=1.0),
 }
