@@ -3,6 +3,11 @@
     python benchmarks/transfer.py --algo sac --n-test 50
     python benchmarks/transfer.py --algo sac --models 'runs/base3/sac_*_seed*.zip' \
         --env-kwargs '{"frame": "base"}' --tag _base
+    python benchmarks/transfer.py --algo sac --n-test 30 --embodiment --tag _embodiment
+
+``--embodiment`` runs the three-arm variants of ``vafn_gym.EMBODIMENT_VARIANTS`` instead (payload, damped joints,
+weaker motors, moved bases, other robots), each beside the scripted controller on the same instructions: where the
+scripted controller fails, the variant is out of reach of any policy, not a failure to adapt.
 
 Evaluates ``load_pretrained(algo)`` (trained on three KUKA arms), or each of the saved ``--models`` (one per seed), on
 ``VAFN/MultiArmReach-v1`` with each robot and arm count, on held-out test instructions of lengths 1-10
@@ -28,11 +33,12 @@ import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from vafn_gym import InstructionBenchmark, episode_rates  # noqa: E402
+from vafn_gym import EMBODIMENT_VARIANTS, InstructionBenchmark, ScriptedController, episode_rates  # noqa: E402
 from vafn_gym.benchmarks import confidence_half_width  # noqa: E402
 from vafn_gym.constants import ACTION_PER_ARM  # noqa: E402
 from vafn_sb3 import load_pretrained, shared_actor_for_env  # noqa: E402
 from vafn_sb3.loading import add_trust_flag, load_model_or_exit  # noqa: E402
+from zoo.jobs import short_commit  # noqa: E402
 
 SETTINGS = (
     ("kuka", 3), ("panda", 3), ("xarm", 3), ("kuka", 4), ("kuka", 6),
@@ -65,6 +71,8 @@ def main() -> None:
     parser.add_argument("--env-kwargs", type=json.loads, default={},
                         help='JSON kwargs of every evaluation env, e.g. \'{"frame": "base"}\' (match the training env)')
     parser.add_argument("--n-test", type=int, default=50, help="held-out instructions per setting")
+    parser.add_argument("--embodiment", action="store_true",
+                        help="the embodiment variants on three arms (with the scripted controller) instead")
     parser.add_argument("--tag", default="", help="suffix of the output file")
     parser.add_argument("--out", type=Path, default=REPO_ROOT / "results" / "learning", help="output folder")
     add_trust_flag(parser)
@@ -80,20 +88,29 @@ def main() -> None:
         source = f"`{args.algo}`, {len(paths)} seed(s): " + ", ".join(Path(p).name for p in paths)
     trained_arms = models[0].action_space.shape[0] // ACTION_PER_ARM
     command = shlex.join(["python", "benchmarks/transfer.py", *sys.argv[1:]])
+    if args.embodiment:
+        settings = [(label, {"n_arms": 3, **kwargs}) for label, kwargs in EMBODIMENT_VARIANTS.items()]
+        header = ["variant", "success", "collision rate", "mean steps", "scripted controller's success"]
+    else:
+        settings = [(f"{robot} | {n_arms}", {"robot": robot, "n_arms": n_arms}) for robot, n_arms in SETTINGS]
+        header = ["robot", "arms", "success", "collision rate", "mean steps"]
     lines = [f"# Zero-shot transfer of {source} (trained on {trained_arms} arms)", "",
-             f"`{command}`; held-out test instructions, lengths 1-10, `VAFN/MultiArmReach-v1`, default targets, "
-             f"inactive arms held, env kwargs {json.dumps(args.env_kwargs)}; mean ± 95 % CI over seeds.", "",
-             "| robot | arms | success | collision rate | mean steps |", "|---|---|---|---|---|"]
-    for robot, n_arms in SETTINGS:
+             f"`{command}` (commit {short_commit()}); held-out test instructions, lengths 1-10, "
+             f"`VAFN/MultiArmReach-v1`, default targets, inactive arms held, env kwargs "
+             f"{json.dumps(args.env_kwargs)}; mean ± 95 % CI over seeds.", "",
+             "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for label, kwargs in settings:
         bench = InstructionBenchmark("VAFN/MultiArmReach-v1", 1, 10, n_test=args.n_test,
-                                     env_kwargs={**args.env_kwargs, "robot": robot, "n_arms": n_arms})
+                                     env_kwargs={**args.env_kwargs, **kwargs})
         probe = bench.make_env()
         try:
             per_seed = [episode_rates(bench.evaluate(policy_for(model, probe))) for model in models]
         except ValueError as error:  # the actor's input layout does not fit this arm count
-            line = f"| {robot} | {n_arms} | not applicable: {str(error)[:90]} | | |"
+            line = f"| {label} | not applicable: {str(error)[:90]} | | |"
         else:
-            line = f"| {robot} | {n_arms} | " + " | ".join(mean_ci([r[m] for r in per_seed]) for m in METRICS) + " |"
+            line = f"| {label} | " + " | ".join(mean_ci([r[m] for r in per_seed]) for m in METRICS) + " |"
+            if args.embodiment:
+                line += f" {episode_rates(bench.evaluate(ScriptedController.for_env(probe)))['success']:.2f} |"
         finally:
             probe.close()
         print(line, flush=True)

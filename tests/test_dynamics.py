@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import runpy
+import subprocess
+import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -234,3 +237,44 @@ def test_online_controller_adapts_when_a_new_robot_is_announced():
     assert event["sequence"] == controller.log[0].sequence and 0 < event["first_action_s"] < 1.0
     controller.close()
     stream.close()
+
+
+def test_embodiment_variants_build_three_arm_envs_and_damping_reaches_every_controlled_joint(monkeypatch):
+    from dataclasses import replace
+
+    from vafn_gym import EMBODIMENT_VARIANTS, KUKA_IIWA, RobotSpec
+    from vafn_gym.sim.bullet import BulletSim
+
+    with pytest.raises(ValueError, match="joint_force"):
+        replace(KUKA_IIWA, joint_force=0.0)
+    with pytest.raises(ValueError, match="joint_damping"):
+        replace(KUKA_IIWA, joint_damping=-1.0)
+    damped: list[tuple[int, int, float]] = []
+    monkeypatch.setattr(BulletSim, "set_joint_damping", lambda self, body, joint, value: damped.append(
+        (body, joint, value)))
+    env = gym.make("VAFN/ThreeArmReach-v1", robot=replace(KUKA_IIWA, joint_damping=5.0))
+    assert sorted({joint for _, joint, _ in damped}) == list(KUKA_IIWA.joints) and {v for *_, v in damped} == {5.0}
+    assert len({body for body, _, _ in damped}) == 3
+    env.close()
+    monkeypatch.undo()
+    assert "xArm6 arms" in EMBODIMENT_VARIANTS and any(
+        isinstance(kwargs.get("robot"), RobotSpec) for kwargs in EMBODIMENT_VARIANTS.values())
+    for label, kwargs in EMBODIMENT_VARIANTS.items():
+        env = gym.make("VAFN/MultiArmReach-v1", n_arms=3, **kwargs)
+        observation, _ = env.reset(seed=0)
+        assert observation.shape == (15,) and env.action_space.shape == (9,), label
+        env.step(np.zeros(9, dtype=np.float32))
+        env.close()
+
+
+def test_transfer_embodiment_table_has_every_variant_beside_the_scripted_controller(tmp_path):
+    result = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "transfer.py"), "--algo", "sac", "--n-test", "1",
+                             "--embodiment", "--tag", "_e", "--out", str(tmp_path)], capture_output=True, text=True,
+                            timeout=600, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert result.returncode == 0, result.stderr[-2000:]
+    from vafn_gym import EMBODIMENT_VARIANTS
+
+    rows = [line for line in (tmp_path / "transfer_sac_e.md").read_text().splitlines() if line.startswith("| ")]
+    assert rows[0].startswith("| variant |") and "scripted controller's success" in rows[0]
+    assert [row.split(" | ")[0][2:] for row in rows[1:]] == list(EMBODIMENT_VARIANTS)
+    assert all(len(row.strip("|").split("|")) == 5 for row in rows[1:])

@@ -8,6 +8,7 @@ from gymnasium.envs.registration import register
 from vafn_gym.benchmarks import InstructionBenchmark, confidence_half_width, episode_rates, run_episode
 from vafn_gym.controllers import RandomPolicy, ScriptedController, trilaterate
 from vafn_gym.dynamics import DYNAMICS_VARIANTS, Dynamics, DynamicsSampler
+from vafn_gym.embodiment import EMBODIMENT_VARIANTS
 from vafn_gym.envs import MultiArmEnv, MultiArmStreamEnv
 from vafn_gym.instructions import Instruction, Waypoint, difficulty_of
 from vafn_gym.layout import ArmLayout
@@ -42,6 +43,7 @@ for _env_id, (_entry_point, _kwargs) in _REGISTRY.items():
     ENV_IDS.append(_env_id)
 
 __all__ = [
+    "EMBODIMENT_VARIANTS",
     "DYNAMICS_VARIANTS",
     "ENV_IDS",
     "INACTIVE_ARM_MODES",

@@ -38,6 +38,9 @@ class Arm:
         self.rest_pose = np.asarray(spec.rest_pose, dtype=np.float64)
         self.base_position = np.asarray(base_position, dtype=np.float64)
         self.body = sim.load_urdf(spec.urdf, self.base_position, yaw=base_yaw + spec.base_yaw_offset)
+        if spec.joint_damping is not None:
+            for joint in self.joints:
+                sim.set_joint_damping(self.body, joint, spec.joint_damping)
         # pybullet's IK works on every movable joint (fingers included): limits and rest pose cover them all, and the
         # controlled joints are picked out of its answer.
         movable = sim.movable_joints(self.body)

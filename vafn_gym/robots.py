@@ -23,6 +23,7 @@ class RobotSpec:
     :param base_yaw_offset: yaw (radians) added so that the model's forward axis faces the table centre.
     :param reach: horizontal reach from the base axis (metres) used by the layout feasibility check.
     :param base_radius: radius of the base circle the default layout uses for this robot.
+    :param joint_damping: viscous damping of every controlled joint (None: the URDF's own).
     """
 
     name: str
@@ -34,10 +35,15 @@ class RobotSpec:
     base_yaw_offset: float = np.pi
     reach: float = 0.8
     base_radius: float = 0.6
+    joint_damping: float | None = None
 
     def __post_init__(self) -> None:
         if len(self.rest_pose) != len(self.joints):
             raise ValueError(f"{self.name}: rest_pose has {len(self.rest_pose)} angles for {len(self.joints)} joints")
+        if not self.joint_force > 0:
+            raise ValueError(f"{self.name}: joint_force must be > 0, got {self.joint_force}")
+        if self.joint_damping is not None and not self.joint_damping >= 0:
+            raise ValueError(f"{self.name}: joint_damping must be >= 0, got {self.joint_damping}")
 
     @property
     def joint_forces(self) -> np.ndarray:

@@ -75,6 +75,12 @@ def git_commit(root: Path = REPO_ROOT) -> str:
     return head + ("-dirty" if dirty else "")
 
 
+def short_commit(root: Path = REPO_ROOT) -> str:
+    """:func:`git_commit` with the hash cut to 7 characters, as result files name it."""
+    head, dirty, _ = git_commit(root).partition("-dirty")
+    return head[:7] + ("-dirty" if dirty else "")
+
+
 def record_path(folder: Path, job_id: str) -> Path:
     """Where the record of one job is written."""
     return Path(folder) / f"{job_id}.json"

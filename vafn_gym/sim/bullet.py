@@ -156,6 +156,10 @@ class BulletSim:
         """Mass (kg) of a link."""
         return float(self._p.getDynamicsInfo(body, link, physicsClientId=self.client)[0])
 
+    def set_joint_damping(self, body: int, joint: int, damping: float) -> None:
+        """Change the viscous damping of a joint."""
+        self._p.changeDynamics(body, joint, jointDamping=float(damping), physicsClientId=self.client)
+
     def set_link_mass(self, body: int, link: int, mass: float) -> None:
         """Change the mass (kg) of a link."""
         self._p.changeDynamics(body, link, mass=float(mass), physicsClientId=self.client)
