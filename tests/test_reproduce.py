@@ -86,6 +86,11 @@ def test_a_run_is_estimated_from_the_committed_training_costs(tmp_path: Path) ->
     # Five equal jobs on two workers take three rounds, not 2.5; a long job bounds the run however many short ones
     assert makespan([600.0] * 5, 2) == 1800.0 and makespan([1000.0, 10.0, 10.0], 2) == 1000.0
     assert makespan([3.0, 3.0, 2.0, 2.0, 2.0], 2) == 7.0 and makespan([], 2) == 0.0  # longest first, as run_training
+    from zoo.reproduce import jobs_line
+
+    line = jobs_line([{"cpu_s": 3600.0, "reused": True}, {"cpu_s": 1800.0}, {"cpu_s": 1800.0}, {"error": "x"}])
+    assert line.startswith("Jobs: 3 (1 finished in earlier sittings), 2.0 CPU-h") and "2: 1.0 h, 8: 1.0 h" in line
+    assert jobs_line([]) == ""
 
     costs = tmp_path / "results" / "adaptation" / "hidden" / "training_costs.csv"
     costs.parent.mkdir(parents=True)

@@ -688,6 +688,18 @@ def stream_section(out: Path) -> list[str]:
     return lines + ([""] if logs else ["", "Not produced.", ""])
 
 
+def jobs_line(records: list[dict[str, Any]]) -> str:
+    """What the run's jobs cost, from their records (every sitting's): CPU-hours, the longest job, and the wall time
+    ``N`` free cores would take for them (longest first, as ``run_training`` schedules)."""
+    costs = [float(record["cpu_s"]) for record in records if record.get("cpu_s") is not None]
+    if not costs:
+        return ""
+    reused = sum(bool(record.get("reused")) for record in records)
+    spans = ", ".join(f"{n}: {makespan(costs, n) / 3600:.1f} h" for n in (2, 8, 32))
+    return (f"Jobs: {len(costs)} ({reused} finished in earlier sittings), {sum(costs) / 3600:.1f} CPU-h summed over "
+            f"their records, the longest {max(costs) / 3600:.2f} h; on N free cores as fast as these ({spans}).")
+
+
 def write_summary(out: Path, run: dict[str, Any] | None = None) -> Path:
     """``out/SUMMARY.md`` from what ``out`` holds: adaptation panels, stream logs, Table 1, and the run's costs."""
     lines = ["# Reproduction summary", ""]
@@ -707,6 +719,9 @@ def write_summary(out: Path, run: dict[str, Any] | None = None) -> Path:
                   f"{run['times_s']['train'] / 60:.1f}, evaluation {run['times_s']['evaluate'] / 60:.1f}, Fig. 4 "
                   f"{run['times_s']['fig4'] / 60:.1f}, Table 1 {run['times_s']['table1'] / 60:.1f} min); 1-min load "
                   f"average at start {run['times_s']['load']:.1f}.", ""]
+        jobs = jobs_line(run.get("training", []))
+        if jobs:
+            lines += [jobs, ""]
         if budget["name"] != "full":
             lines += [f"**{budget['name']} mode**: short training, few seeds and tasks: a check that every stage runs, "
                       "not the comparison (`--full` is). The `pretrained_*` rows are the packaged checkpoints.", ""]
