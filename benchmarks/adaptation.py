@@ -87,6 +87,7 @@ from vafn_sb3.inference import (  # noqa: E402
 )
 from vafn_sb3.inference.dynamics import DynamicsCompensation  # noqa: E402
 from vafn_sb3.loading import add_trust_flag, load_model, load_model_or_exit, training_seed  # noqa: E402
+from zoo.jobs import short_commit  # noqa: E402
 from zoo.registry import register_algorithms  # noqa: E402
 from zoo.study import support_budget  # noqa: E402
 
@@ -477,7 +478,8 @@ def main(argv: list[str] | None = None) -> None:
     if variant_table:
         write_csv_rows(variant_table, args.out / "adaptation_by_variant.csv")
     episodes = support_episodes(args, tasks)
-    meta = {"command": shlex.join(sys.argv), "title": title, "env": args.env, "env_kwargs": args.env_kwargs,
+    meta = {"command": shlex.join(sys.argv), "commit": short_commit(), "title": title, "env": args.env,
+            "env_kwargs": args.env_kwargs,
             "test_lengths": [args.min_length, args.max_length], "n_tasks": len(tasks), "benchmark_seed": benchmark.seed,
             "dynamics": None if args.dynamics == "none" else {
                 "version": DYNAMICS_VERSION, "split": args.dynamics,

@@ -39,6 +39,7 @@ import vafn_gym  # noqa: E402,F401  (registers the env IDs)
 from vafn_gym import InstructionBenchmark, confidence_half_width, episode_rates  # noqa: E402
 from vafn_gym.files import write_csv_rows  # noqa: E402
 from zoo.hyperparams import load_entry, load_hyperparams, load_training_env_kwargs  # noqa: E402
+from zoo.jobs import short_commit  # noqa: E402
 from vafn_sb3 import save_weights  # noqa: E402
 from vafn_sb3.registry import weights_classes  # noqa: E402
 from zoo.registry import register_algorithms, require_algorithm  # noqa: E402
@@ -160,7 +161,8 @@ def main() -> None:
     summary = {"algo": args.algo, "env": args.env, "env_kwargs": args.env_kwargs,
                "train_env_kwargs": training_env_kwargs(args),
                "hyperparams": args.hyperparams,
-               "train_max_length": args.train_max_length, "command": " ".join(sys.argv), **summarise(rows, seeds)}
+               "train_max_length": args.train_max_length, "command": " ".join(sys.argv), "commit": short_commit(),
+               **summarise(rows, seeds)}
     (args.out / f"{name}_summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary, indent=2))
 
