@@ -1,7 +1,7 @@
 """Reproduce the paper's experiments into a fresh folder: the adaptation study (Fig. 3), Fig. 4, Table 1, SUMMARY.md.
 
     python zoo/reproduce.py --quick      # <= 15 min: the packaged checkpoints, and one short training per method
-    python zoo/reproduce.py --full       # 5-7 h on 2 free cores (by panel): all methods, 5 seeds, 3 families
+    python zoo/reproduce.py --full       # ~14 CPU-h, 7 h on 2 free cores (--resume goes on): 5 seeds, 3 families
     python zoo/reproduce.py --smoke --out /tmp/vafn-smoke   # CI: every stage end to end in a few minutes
     python zoo/reproduce.py --summary --out results --overwrite-results   # rewrite SUMMARY.md from a results folder
 
