@@ -3,7 +3,7 @@
 Where :mod:`vafn_gym.dynamics` changes what a command does (the command-to-motion map), these change the body that
 carries the command out, each as the env kwargs that build it. The end-effector velocity command goes through inverse
 kinematics and joint position control, so a policy trained on the nominal KUKA arms meets the same command-to-motion
-map on all of them, up to how fast the joints can follow (``benchmarks/embodiment.py`` measures it).
+map on all of them, up to how fast the joints can follow (``benchmarks/transfer.py --embodiment`` measures it).
 """
 
 from __future__ import annotations

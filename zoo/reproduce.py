@@ -272,16 +272,16 @@ def packaged_jobs(budget: Budget, work: Path) -> list[PackagedJob]:
 def write_packaged(jobs: list[PackagedJob], out: Path) -> Path | None:
     """Write every finished packaged job's exported pair into ``out/pretrained`` (what a maintainer copies into
     ``vafn_sb3/pretrained``); returns the folder, or None when no job finished."""
-    from zoo.jobs import read_record, write_file_text
+    from zoo.jobs import write_file_text
 
     folder = out / "pretrained"
     written = False
     for job in jobs:
-        record = read_record(job.work / "jobs", job.job_id)
-        if record is None or record.get("status") != "ok":
+        files = job_files(job)
+        if not files:
             continue
         for suffix in ("zip", "json"):
-            write_file_text(record["result"]["files"][suffix], folder / f"{job.policy.label}.{suffix}")
+            write_file_text(files[suffix], folder / f"{job.policy.label}.{suffix}")
         written = True
     return folder if written else None
 
@@ -377,14 +377,13 @@ def run_training(jobs: list[Job], n_workers: int, address: str | None = None) ->
     return rows
 
 
-def job_file(job: Job, name: str) -> str | None:
-    """The text of one file a finished job collected (``curves``, ``adaptation.csv``, ``adaptation.json``), or None."""
+def job_files(job: Job) -> dict[str, str]:
+    """The texts of the files a finished job collected, by name (``curves``, ``adaptation.csv``, ...); none when the
+    job has no successful record."""
     from zoo.jobs import read_record
 
     record = read_record(job.work / "jobs", job.job_id)
-    if record is None or record.get("status") != "ok":
-        return None
-    return record["result"]["files"].get(name)
+    return record["result"]["files"] if record is not None and record.get("status") == "ok" else {}
 
 
 def csv_text_rows(text: str | None) -> list[dict[str, str]]:
@@ -398,7 +397,7 @@ def training_costs(jobs: list[Job]) -> list[dict[str, Any]]:
     for job in jobs:
         panel, label, algo, seed = job_labels(job)
         env = job.policy.env_id if isinstance(job, PackagedJob) else job.method.train_env
-        final = [row for row in csv_text_rows(job_file(job, "curves")) if int(row["seed"]) == seed][-1:]
+        final = [row for row in csv_text_rows(job_files(job).get("curves")) if int(row["seed"]) == seed][-1:]
         rows += [{"panel": panel, "method": label, "algo": algo, "env": env, "seed": seed,
                   "timesteps": int(row["timesteps"]),
                   "wall_s": float(row["wall_s"]), "cpu_s": float(row["cpu_s"]),
@@ -414,7 +413,7 @@ def learning_curves(jobs: list[TrainJob], out: Path) -> list[Path]:
     curves: dict[str, dict[str, list[Curve]]] = {"success": {}, "collision": {}, "return": {}}
     panel = ""
     for job in jobs:
-        rows = [row for row in csv_text_rows(job_file(job, "curves")) if int(row["seed"]) == job.seed]
+        rows = [row for row in csv_text_rows(job_files(job).get("curves")) if int(row["seed"]) == job.seed]
         if job.panel.name != CURVES_PANEL or len(rows) < 2:
             continue
         panel = f"{job.panel.name} panel ({job.panel.env_id})"
@@ -448,11 +447,11 @@ def merge_job_evaluations(jobs: list[TrainJob], folder: Path) -> bool:
     ``folder/adaptation.json``, for adaptation.py's ``--append``; False when no job of the panel finished."""
     rows, methods, meta = [], {}, None
     for job in jobs:
-        text = job_file(job, "adaptation.json")
-        if text is None:
+        files = job_files(job)
+        if "adaptation.json" not in files:
             continue
-        meta = json.loads(text)
-        rows += csv_text_rows(job_file(job, "adaptation.csv"))
+        meta = json.loads(files["adaptation.json"])
+        rows += csv_text_rows(files.get("adaptation.csv"))
         for method in meta["methods"]:
             merged = methods.setdefault(method["label"], {**method, "models": []})
             merged["models"] += method["models"]
